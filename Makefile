@@ -1,0 +1,48 @@
+# vet: two commands set everything up on a fresh clone: `make demo` and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+VET    := $(BIN)/vet
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test test-slow bench lint format sample-data clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+DEMO_DIR := demo_out
+demo: $(STAMP)
+	@mkdir -p $(DEMO_DIR)
+	$(VET) simulate builtin:interior --size 640x512 --seed 1 -o $(DEMO_DIR)/capture.exr
+	$(VET) hdr-static $(DEMO_DIR)/capture.exr -o $(DEMO_DIR)/hdr.exr
+	$(VET) tonemap $(DEMO_DIR)/hdr.exr -o $(DEMO_DIR)/hdr.png
+	$(VET) tonemap $(DEMO_DIR)/capture.exr --exposure-time-map -o $(DEMO_DIR)/exposure_time.png
+	@echo "demo: look at $(DEMO_DIR)/hdr.png and $(DEMO_DIR)/exposure_time.png" >&2
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
+
+bench: $(STAMP)
+	$(BIN)/python -m tests.benchmarks.run
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+format: $(STAMP)
+	$(BIN)/ruff format .
+	$(BIN)/ruff check --fix .
+
+sample-data: $(STAMP)
+	$(BIN)/python -m stages.sample_data sample_data
+
+clean:
+	rm -rf $(DEMO_DIR) .pytest_cache

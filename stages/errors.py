@@ -1,0 +1,23 @@
+"""One exception hierarchy for everything the command line reports as a runtime failure.
+
+A :class:`VetError` becomes a one-line ``vet <command>: error: ...`` message and exit
+status 1; anything else is a bug and shows its traceback.
+"""
+
+from __future__ import annotations
+
+
+class VetError(Exception):
+    """A runtime failure that is the input's or the environment's fault, not a bug."""
+
+
+class InputError(VetError):
+    """Unreadable, malformed or inconsistent input (files, arguments, specs)."""
+
+
+class FormatError(InputError):
+    """A file that is not a valid vet file of the expected kind."""
+
+
+class DeviceError(VetError):
+    """A camera or LCoS controller failed, disconnected or broke the protocol."""

@@ -1,0 +1,192 @@
+"""Capture files: what a VET rig (real or simulated) records in one frame.
+
+Layers (see :mod:`stages.formats.layered` for the container):
+
+=================  ===========  =====================================================
+layer              channels     meaning
+=================  ===========  =====================================================
+``I``              Y or R,G,B   variable exposure image, DN
+``T``              Y            exposure time image: when each pixel's LCoS cell
+                                closed as *applied by the device*, seconds (frame
+                                length where it never closed)
+``A``              Y            optional fixed transmittance (adaptive attenuation)
+``M00`` ...        Y or R,G,B   optional measuring images: each is the sum of the
+                                measuring subframes in one time bin, DN; bin times
+                                in ``meta["measure_times"]``
+``truth``          Y or R,G,B   optional ground truth: scene radiance at t = 0, in
+                                scene units (simulated captures)
+``truth_motion``   u, v         optional true image velocity at t = 0, pixels/s
+=================  ===========  =====================================================
+
+Metadata: ``kind = "capture"``, ``rig`` (:class:`~stages.rig.RigParams`),
+``method`` (``vet``, ``long``, ``short``, ``adaptive-attenuation``),
+``radiance_scale`` (electrons per second per scene unit, simulated captures only),
+``measure_times``, ``motion``, ``scene``, ``seed`` and ``provenance``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import __version__
+from ..errors import FormatError, InputError
+from ..rig import RigParams
+from .layered import Layered, read_layered, write_layered
+
+CAPTURE_FILENAMES = ("capture.exr", "capture.npz")
+
+
+def provenance_entry(step: str, inputs: list[str] | None = None, **params: Any) -> dict[str, Any]:
+    """One link of the provenance chain carried by every file."""
+    return {
+        "step": step,
+        "software": f"vet {__version__}",
+        "command": " ".join(sys.argv),
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "inputs": inputs or [],
+        "params": params,
+    }
+
+
+@dataclass
+class Capture:
+    """One recorded (or simulated) VET frame. Arrays are float32."""
+
+    I: np.ndarray  # noqa: E741 - the paper's symbol; (H, W, C) DN
+    T: np.ndarray  # (H, W) seconds
+    channels: list[str]
+    rig: RigParams
+    meta: dict[str, Any] = field(default_factory=dict)
+    measure: np.ndarray | None = None  # (B, H, W, C) DN
+    measure_times: np.ndarray | None = None  # (B, 2) seconds [start, end)
+    transmittance: np.ndarray | None = None  # (H, W)
+    truth: np.ndarray | None = None  # (H, W, C) scene units
+    truth_motion: np.ndarray | None = None  # (H, W, 2) px/s
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.I.shape[:2]
+
+    @property
+    def method(self) -> str:
+        return str(self.meta.get("method", "vet"))
+
+    @property
+    def radiance_scale(self) -> float | None:
+        s = self.meta.get("radiance_scale")
+        return float(s) if s else None
+
+    def validate(self, what: str = "capture") -> None:
+        """Check shapes and values; raise :class:`FormatError` with one sentence."""
+        if self.I.ndim != 3 or self.I.shape[2] != len(self.channels) or self.I.shape[2] == 0:
+            raise FormatError(f"{what}: I must be (H, W, C) with C = {len(self.channels)}")
+        if self.T.shape != self.I.shape[:2]:
+            raise FormatError(
+                f"{what}: I is {self.I.shape[1]}x{self.I.shape[0]} but T is "
+                f"{self.T.shape[1] if self.T.ndim > 1 else '?'}x{self.T.shape[0]}; they must match"
+            )
+        if not np.all(np.isfinite(self.T)):
+            raise FormatError(f"{what}: T holds NaN or infinite exposure times")
+        if not np.all(np.isfinite(self.I)):
+            raise FormatError(f"{what}: I holds NaN or infinite values")
+        tf = self.rig.frame_s
+        if self.T.size and (float(self.T.min()) < 0 or float(self.T.max()) > tf * (1 + 1e-6)):
+            raise FormatError(f"{what}: T outside [0, {tf}] s (the frame length)")
+        if self.measure is not None:
+            if self.measure.ndim != 4 or self.measure.shape[1:] != self.I.shape:
+                raise FormatError(f"{what}: measuring images do not match I's size")
+            if self.measure_times is None or self.measure_times.shape != (self.measure.shape[0], 2):
+                raise FormatError(f"{what}: measuring images lack their time bins")
+        if self.transmittance is not None and self.transmittance.shape != self.T.shape:
+            raise FormatError(f"{what}: transmittance does not match T's size")
+
+    # --- conversion to/from the layered container ---------------------------------
+    def to_layered(self) -> Layered:
+        data = Layered()
+        data.add("I", self.I, self.channels)
+        data.add("T", self.T, ["Y"])
+        if self.transmittance is not None:
+            data.add("A", self.transmittance, ["Y"])
+        if self.measure is not None:
+            for b in range(self.measure.shape[0]):
+                data.add(f"M{b:02d}", self.measure[b], self.channels)
+        if self.truth is not None:
+            data.add("truth", self.truth, self.channels)
+        if self.truth_motion is not None:
+            data.add("truth_motion", self.truth_motion, ["u", "v"])
+        meta = dict(self.meta)
+        meta["kind"] = "capture"
+        meta["format_version"] = 1
+        meta["rig"] = self.rig.to_dict()
+        meta["channels"] = list(self.channels)
+        meta["units"] = {"I": "DN", "T": "s", "M": "DN", "A": "1", "truth": "scene", "truth_motion": "px/s"}
+        if self.measure_times is not None:
+            meta["measure_times"] = np.asarray(self.measure_times, dtype=float).tolist()
+        data.meta = meta
+        return data
+
+    @classmethod
+    def from_layered(cls, data: Layered, what: str = "capture") -> Capture:
+        meta = dict(data.meta)
+        if meta.get("kind") != "capture":
+            kind = meta.get("kind") or "not a vet file"
+            raise FormatError(f"{what}: not a capture (kind: {kind})")
+        for needed in ("I", "T"):
+            if needed not in data.layers:
+                raise FormatError(f"{what}: capture has no {needed} layer")
+        rig_d = meta.pop("rig", None)
+        if not isinstance(rig_d, dict):
+            raise FormatError(f"{what}: capture metadata has no rig parameters")
+        try:
+            rig = RigParams.from_dict(rig_d)
+        except InputError as exc:
+            raise FormatError(f"{what}: {exc}") from None
+        channels = data.channels["I"]
+        mkeys = sorted(k for k in data.layers if len(k) == 3 and k[0] == "M" and k[1:].isdigit())
+        measure = np.stack([data.layers[k] for k in mkeys]) if mkeys else None
+        mt = meta.get("measure_times")
+        measure_times = np.asarray(mt, dtype=np.float64) if mt is not None and measure is not None else None
+        cap = cls(
+            I=data.layers["I"],
+            T=data.layers["T"][:, :, 0],
+            channels=list(channels),
+            rig=rig,
+            meta=meta,
+            measure=measure,
+            measure_times=measure_times,
+            transmittance=data.layers["A"][:, :, 0] if "A" in data.layers else None,
+            truth=data.layers.get("truth"),
+            truth_motion=data.layers.get("truth_motion"),
+        )
+        cap.validate(what)
+        return cap
+
+
+def resolve_capture_path(path: str | Path) -> str:
+    """A capture argument may be a file, ``-``, or a capture folder holding one."""
+    if str(path) == "-":
+        return "-"
+    p = Path(path)
+    if p.is_dir():
+        for name in CAPTURE_FILENAMES:
+            if (p / name).is_file():
+                return str(p / name)
+        raise InputError(f"{p}: folder holds no capture file ({' or '.join(CAPTURE_FILENAMES)})")
+    return str(p)
+
+
+def read_capture(path: str | Path) -> Capture:
+    real = resolve_capture_path(path)
+    what = "standard input" if real == "-" else real
+    return Capture.from_layered(read_layered(real), what)
+
+
+def write_capture(path: str | Path, capture: Capture) -> None:
+    capture.validate()
+    write_layered(path, capture.to_layered())

@@ -1,0 +1,141 @@
+"""Paths, standard streams, format sniffing and atomic writes.
+
+Every output goes to a temporary file in the destination folder and is renamed over the
+target only once it is complete, so a failed or killed command never leaves a partial
+file and never damages an existing one. ``-`` means standard input / output.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from ..errors import FormatError, InputError
+
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+ZIP_MAGIC = b"PK\x03\x04"
+#: Largest input we accept without being told otherwise (bytes). Guards against files
+#: whose headers promise absurd sizes.
+MAX_INPUT_BYTES = int(os.environ.get("VET_MAX_INPUT_BYTES", str(8 * 1024**3)))
+
+
+def sniff(path: str | Path) -> str:
+    """Return ``"exr"`` or ``"npz"`` from a file's magic bytes, else raise FormatError."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder, not a file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    if head == EXR_MAGIC:
+        return "exr"
+    if head == ZIP_MAGIC:
+        return "npz"
+    if not head:
+        raise FormatError(f"{path}: file is empty")
+    raise FormatError(f"{path}: not an OpenEXR or NumPy .npz file (unrecognised magic bytes)")
+
+
+def format_for_output(path: str, default: str = "exr") -> str:
+    """Pick the output format from the name's extension (``-`` gives ``default``)."""
+    if path == "-":
+        return default
+    ext = Path(path).suffix.lower()
+    if ext == ".exr":
+        return "exr"
+    if ext == ".npz":
+        return "npz"
+    raise InputError(f"{path}: unsupported output extension {ext or '(none)'!r}; use .exr or .npz")
+
+
+@contextlib.contextmanager
+def spooled_input(path: str | Path) -> Iterator[Path]:
+    """Yield a real, seekable file path for ``path``; ``-`` spools stdin to a temp file.
+
+    Libraries such as OpenImageIO cannot read ``/dev/stdin``; spooling also lets us sniff
+    the format and check the size before parsing.
+    """
+    if str(path) != "-":
+        p = Path(path)
+        if not p.exists():
+            raise InputError(f"{p}: no such file")
+        yield p
+        return
+    fd, tmp = tempfile.mkstemp(prefix="vet-stdin-")
+    try:
+        with os.fdopen(fd, "wb") as out:
+            total = 0
+            src = sys.stdin.buffer
+            while True:
+                chunk = src.read(1 << 20)
+                if not chunk:
+                    break
+                total += len(chunk)
+                if total > MAX_INPUT_BYTES:
+                    raise InputError("standard input exceeds the input size limit (VET_MAX_INPUT_BYTES)")
+                out.write(chunk)
+        if total == 0:
+            raise InputError("standard input is empty (nothing was piped in)")
+        kind = sniff(tmp)
+        named = f"{tmp}.{kind}"
+        os.replace(tmp, named)
+        tmp = named
+        yield Path(named)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path to write; on success it replaces ``path`` atomically.
+
+    ``path == "-"`` writes the finished file to standard output instead. On any
+    exception the temporary file is removed and ``path`` is untouched.
+    """
+    to_stdout = str(path) == "-"
+    if to_stdout:
+        folder = Path(tempfile.gettempdir())
+        suffix = suffix or ""
+    else:
+        target = Path(path)
+        folder = target.parent if str(target.parent) else Path(".")
+        if not folder.is_dir():
+            raise InputError(f"{target}: output folder {folder} does not exist")
+        suffix = suffix if suffix is not None else target.suffix
+    fd, tmp = tempfile.mkstemp(prefix=".vet-tmp-", suffix=suffix, dir=folder)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        if to_stdout:
+            with open(tmp_path, "rb") as f:
+                out = sys.stdout.buffer
+                shutil.copyfileobj(f, out, 1 << 20)
+                out.flush()
+        else:
+            # mkstemp creates 0600 files; give outputs the usual umask-derived mode.
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp_path, 0o666 & ~umask)
+            os.replace(tmp_path, target)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp_path)
+
+
+def check_size(nbytes: int, what: str) -> None:
+    """Refuse to allocate more than :data:`MAX_INPUT_BYTES` for one input."""
+    if nbytes < 0 or nbytes > MAX_INPUT_BYTES:
+        raise FormatError(
+            f"{what}: declares {nbytes} bytes of pixel data, over the limit of "
+            f"{MAX_INPUT_BYTES} (set VET_MAX_INPUT_BYTES to raise it)"
+        )

@@ -1,0 +1,122 @@
+"""Static HDR from a VET capture: the paper's I/T, made exact.
+
+For a still scene each pixel of the VET sensor integrates
+
+    I/g = L (A (T + eps (W - T))) + d W + noise
+
+(``g`` gain, ``A`` fixed transmittance (1 unless adaptive attenuation), ``T`` when its
+LCoS cell closed as applied by the device, which already contains the latency, ``eps``
+leakage, ``W`` the sensor's integration window, ``d`` dark current), so
+
+    L = (I/g - d W) / (A (T + eps (W - T)))   [electrons per second]
+
+divided by the capture's radiance scale for simulated captures (scene units), else
+multiplied by the gain (DN/s).
+
+Pixels the VET sensor saturated are recovered from the first measuring-image bin (a short
+exposure of the same light); pixels saturated there too keep a lower bound; pixels below
+the noise floor get the noise-equivalent radiance. Each case is flagged in the mask
+(:data:`~stages.formats.hdr.MASK_CODES`), never silently wrong.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .formats.capture import Capture, provenance_entry
+from .formats.hdr import HDRImage
+
+#: A pixel whose signal is below this many electrons carries no information.
+NOISE_FLOOR_E = 1.0
+
+
+def effective_exposure(cap: Capture) -> np.ndarray:
+    """Light-weighted exposure A (T + eps (W - T)) in seconds, ``(H, W, 1)`` float32."""
+    w = float(cap.meta.get("integration_s", cap.rig.frame_s))
+    eps = cap.rig.leakage if cap.meta.get("leakage_applies", True) else 0.0
+    t = cap.T.astype(np.float32)
+    e = t + np.float32(eps) * (np.float32(w) - t)
+    if cap.transmittance is not None:
+        e = e * cap.transmittance
+    return e[..., None]
+
+
+def rate_to_output_units(cap: Capture, rate_e_s: np.ndarray) -> tuple[np.ndarray, str]:
+    """Electrons/s at the VET sensor -> scene units (simulated) or DN/s (recorded)."""
+    scale = cap.radiance_scale
+    if scale:
+        return rate_e_s / np.float32(scale), "scene"
+    return rate_e_s * np.float32(cap.rig.gain_dn_per_e), "DN/s"
+
+
+def hdr_static(cap: Capture) -> HDRImage:
+    """Invert a capture assuming a still scene.
+
+    Parameters
+    ----------
+    cap : Capture
+        Any capture (VET or a comparison method).
+
+    Returns
+    -------
+    HDRImage
+        ``radiance`` (H, W, C) float32 in scene units or DN/s, ``mask`` (H, W) uint8,
+        ``exposure_time`` the capture's T.
+    """
+    rig = cap.rig
+    g = np.float32(rig.gain_dn_per_e)
+    w = float(cap.meta.get("integration_s", rig.frame_s))
+    signal_e = cap.I / g - np.float32(rig.dark_current_e_s * w)
+    expo = effective_exposure(cap)
+    rate = signal_e / expo
+
+    mask = np.zeros(cap.shape, np.uint8)
+    vet_sat = cap.I >= np.float32(rig.max_dn - 0.5)
+    if vet_sat.any():
+        sat_px = vet_sat.any(axis=2)
+        rec, rec_ok = _rate_from_measure(cap)
+        if rec is not None:
+            use = sat_px & rec_ok
+            rate = np.where(use[..., None], np.maximum(rec, rate), rate)
+            mask[use] = 1
+            mask[sat_px & ~rec_ok] = 2
+            lower = sat_px & ~rec_ok
+            rate = np.where(lower[..., None], np.maximum(rec, rate), rate)
+        else:
+            mask[sat_px] = 2
+    floor_rate = np.float32(NOISE_FLOOR_E) / expo
+    low = (signal_e < NOISE_FLOOR_E).any(axis=2) & (mask == 0)
+    mask[low] = 3
+    rate = np.maximum(rate, floor_rate)
+
+    radiance, units = rate_to_output_units(cap, rate.astype(np.float32))
+    meta = {
+        "units": units,
+        "radiance_scale": cap.radiance_scale,
+        "rig": rig.to_dict(),
+        "method": "vet-static" if cap.method == "vet" else cap.method,
+        "source_method": cap.method,
+        "motion": cap.meta.get("motion"),
+        "scene": cap.meta.get("scene"),
+        "provenance": list(cap.meta.get("provenance", [])) + [provenance_entry("hdr-static")],
+    }
+    return HDRImage(radiance=radiance.astype(np.float32), channels=list(cap.channels), meta=meta,
+                    mask=mask, exposure_time=cap.T)
+
+
+def _rate_from_measure(cap: Capture) -> tuple[np.ndarray | None, np.ndarray]:
+    """Rate (e-/s at the VET sensor) from the first measuring bin, and where it is valid."""
+    if cap.measure is None or cap.measure_times is None:
+        return None, np.zeros(cap.shape, bool)
+    rig = cap.rig
+    g = np.float32(rig.gain_dn_per_e)
+    t0, t1 = (float(v) for v in cap.measure_times[0])
+    dur = t1 - t0
+    n_sub = max(1, int(round(dur / rig.subframe_s)))
+    m0 = cap.measure[0]
+    rate = (m0 / g - np.float32(rig.dark_current_e_s * dur)) / np.float32(dur * rig.measure_fraction)
+    # Valid unless some subframe of the bin clipped (a clipped subframe reads max DN).
+    ok = (m0 < np.float32(n_sub * rig.max_dn * 0.98)).all(axis=2)
+    per_sub = m0 / n_sub
+    ok &= (per_sub < np.float32(rig.max_dn * 0.95)).all(axis=2)
+    return rate.astype(np.float32), ok

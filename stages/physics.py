@@ -1,0 +1,149 @@
+"""Rig physics shared by ``simulate``, the emulated rig behind ``capture``, and ``deblur``.
+
+Sensor model (both sensors): expected electrons ``lam`` -> shot noise (Poisson) -> clip at
+the full well -> read noise (Gaussian) -> ADC (``gain_dn_per_e``, rounding, clip to the
+code range). Closure: the host sums measuring subframes per pixel; an LCoS cell closes on
+its brightest pixel once that sum reaches the threshold, and the closure takes effect
+``latency_subframes`` after the end of the subframe that crossed it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .rig import RigParams
+
+#: Above this mean the normal approximation replaces exact Poisson sampling. At lam = 30
+#: the approximation's skewness error is 1/sqrt(30) ~ 0.18 sigma^3, far below what the
+#: ADC (2.4 e- per DN) resolves; exact sampling everywhere costs 65 ms per megapixel.
+POISSON_EXACT_BELOW = 30.0
+
+
+def shot_noise(lam: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Photon/dark shot noise: a Poisson draw per pixel with mean ``lam`` (electrons).
+
+    Exact for ``lam < POISSON_EXACT_BELOW``, normal approximation above (float32).
+    """
+    lam = np.maximum(lam, 0, dtype=np.float32)
+    out = rng.standard_normal(lam.shape, dtype=np.float32)
+    out *= np.sqrt(lam)
+    out += lam
+    small = lam < POISSON_EXACT_BELOW
+    if small.any():
+        out[small] = rng.poisson(lam[small]).astype(np.float32)
+    return out
+
+
+def expose(lam_e: np.ndarray, rig: RigParams, rng: np.random.Generator) -> np.ndarray:
+    """Expected electrons -> digital numbers through the full sensor chain (float32 DN)."""
+    e = shot_noise(lam_e, rng)
+    np.minimum(e, rig.full_well_e, out=e)
+    if rig.read_noise_e > 0:
+        e += rig.read_noise_e * rng.standard_normal(e.shape, dtype=np.float32)
+    e *= rig.gain_dn_per_e
+    np.rint(e, out=e)
+    np.clip(e, 0, rig.max_dn, out=e)
+    return e
+
+
+class CellMap:
+    """Which LCoS cell governs each sensor pixel, through the calibration homography.
+
+    ``pixel_cell[y, x]`` is the row-major cell index (``cy * cells_w + cx``) whose area
+    contains the pixel centre, or ``n_cells`` (a sentinel, never closed) where the pixel
+    lies outside the LCoS footprint.
+    """
+
+    def __init__(self, homography: np.ndarray, lcos_cells: tuple[int, int], shape: tuple[int, int]):
+        h, w = shape
+        cw, ch = lcos_cells
+        self.shape = shape
+        self.lcos_cells = (cw, ch)
+        self.n_cells = cw * ch
+        hinv = np.linalg.inv(np.asarray(homography, dtype=np.float64))
+        yy, xx = np.mgrid[0:h, 0:w]
+        pts = np.stack([xx.ravel() + 0.5, yy.ravel() + 0.5, np.ones(h * w)])
+        cell = hinv @ pts
+        cx = np.floor(cell[0] / cell[2]).astype(np.int64)
+        cy = np.floor(cell[1] / cell[2]).astype(np.int64)
+        inside = (cx >= 0) & (cx < cw) & (cy >= 0) & (cy < ch)
+        idx = np.where(inside, cy * cw + cx, self.n_cells)
+        self.pixel_cell = idx.reshape(h, w).astype(np.int32)
+        flat = self.pixel_cell.ravel()
+        self._order = np.argsort(flat, kind="stable").astype(np.int64)
+        sorted_cells = flat[self._order]
+        self._present, self._starts = np.unique(sorted_cells, return_index=True)
+        self._starts = self._starts.astype(np.int64)
+
+    @classmethod
+    def for_rig(cls, rig: RigParams, shape: tuple[int, int]) -> CellMap:
+        return cls(np.asarray(rig.homography), rig.lcos_cells, shape)
+
+    def cell_max(self, values: np.ndarray) -> np.ndarray:
+        """Per-cell maximum of a per-pixel (H, W) array; cells with no pixel get -inf.
+
+        Returns ``ndarray of shape (n_cells + 1,)``; the last entry is the sentinel.
+        """
+        out = np.full(self.n_cells + 1, -np.inf, dtype=np.float32)
+        gathered = values.ravel()[self._order]
+        out[self._present] = np.maximum.reduceat(gathered, self._starts)
+        return out
+
+    def cell_min(self, values: np.ndarray) -> np.ndarray:
+        out = np.full(self.n_cells + 1, np.inf, dtype=np.float32)
+        gathered = values.ravel()[self._order]
+        out[self._present] = np.minimum.reduceat(gathered, self._starts)
+        return out
+
+    def to_pixels(self, per_cell: np.ndarray) -> np.ndarray:
+        """Broadcast a per-cell array (length ``n_cells + 1``) back to (H, W)."""
+        return per_cell[self.pixel_cell]
+
+
+class ClosureController:
+    """The host's threshold logic: accumulate measuring subframes, close cells.
+
+    Call :meth:`step` once per measuring subframe ``k`` (DN, (H, W, C)); it returns the
+    cells newly commanded closed. ``close_subframe[c]`` is the subframe index from which
+    cell ``c`` is closed (it integrated subframes ``0 .. close_subframe - 1``), with
+    ``NEVER`` for cells still open.
+    """
+
+    NEVER = np.iinfo(np.int32).max
+
+    def __init__(self, rig: RigParams, cellmap: CellMap):
+        self.rig = rig
+        self.cellmap = cellmap
+        h, w = cellmap.shape
+        self.sum_dn = np.zeros((h, w), np.float32)
+        self.close_subframe = np.full(cellmap.n_cells + 1, self.NEVER, dtype=np.int32)
+        self.threshold_dn = np.float32(rig.threshold_dn)
+
+    def step(self, frame_dn: np.ndarray, k: int) -> np.ndarray:
+        """Add subframe ``k``; return indices of cells that crossed the threshold."""
+        brightest = frame_dn.max(axis=2) if frame_dn.ndim == 3 else frame_dn
+        self.sum_dn += brightest
+        cmax = self.cellmap.cell_max(self.sum_dn)
+        new = np.flatnonzero((cmax >= self.threshold_dn) & (self.close_subframe == self.NEVER))
+        new = new[new < self.cellmap.n_cells]
+        self.close_subframe[new] = k + 1 + self.rig.latency_subframes
+        return new
+
+    def open_pixels(self, j: int) -> np.ndarray:
+        """Boolean (H, W): pixels whose cell is open during subframe ``j``."""
+        return self.cellmap.to_pixels(self.close_subframe > j)
+
+    def exposure_time(self) -> np.ndarray:
+        """Per-pixel closure time in seconds (the frame length where never closed)."""
+        t = np.minimum(
+            self.close_subframe.astype(np.float64) * self.rig.subframe_s, self.rig.frame_s
+        ).astype(np.float32)
+        return self.cellmap.to_pixels(t)
+
+
+def radiance_scale(scene_luminance_p999: float, rig: RigParams) -> float:
+    """Electrons per second (at the VET sensor) per scene unit, chosen so that the
+    scene's 99.9th-percentile luminance reaches the threshold in one measuring subframe."""
+    if not np.isfinite(scene_luminance_p999) or scene_luminance_p999 <= 0:
+        raise ValueError("scene has no positive luminance to set the radiance scale from")
+    return rig.threshold_e / (rig.subframe_s * rig.measure_fraction * scene_luminance_p999)

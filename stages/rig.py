@@ -1,0 +1,153 @@
+"""Rig parameters: every number that describes a VET rig, with the defaults of DESIGN.md §2.
+
+A :class:`RigParams` travels inside every capture's metadata so that each later stage
+reconstructs with exactly the physics that made the data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+
+
+def default_homography(lcos_cells: tuple[int, int], sensor_size: tuple[int, int]) -> list[list[float]]:
+    """Homography mapping LCoS cell coordinates onto sensor pixel coordinates.
+
+    The default rig images the whole LCoS onto the whole sensor (a pure scale): cell
+    centre ``(i + 0.5)`` lands on pixel coordinate ``(i + 0.5) * sensor / cells``.
+    Coordinates are continuous with pixel ``(0, 0)`` covering ``[0, 1) x [0, 1)``.
+    """
+    sx = sensor_size[0] / lcos_cells[0]
+    sy = sensor_size[1] / lcos_cells[1]
+    return [[sx, 0.0, 0.0], [0.0, sy, 0.0], [0.0, 0.0, 1.0]]
+
+
+@dataclass
+class RigParams:
+    """Physical parameters of a VET rig (units in the names; times in seconds).
+
+    Attributes
+    ----------
+    frame_s : float
+        Length of the VET sensor's frame Tf.
+    subframe_s : float
+        Length of one measuring subframe tau.
+    full_well_e : float
+        Full-well capacity of both sensors, electrons.
+    read_noise_e : float
+        Read noise, electrons rms per read.
+    adc_bits : int
+        ADC depth; full well maps to ``2**adc_bits - 1`` DN.
+    dark_current_e_s : float
+        Dark current, electrons per second.
+    threshold_frac : float
+        Closure threshold theta as a fraction of the full well.
+    latency_subframes : int
+        Subframes between the end of the subframe whose sum crossed theta and the
+        moment the LCoS cell closes.
+    leakage : float
+        Transmittance of a closed LCoS cell (0 = perfect shutter).
+    lcos_cells : (int, int)
+        LCoS grid, (width, height) in cells.
+    sensor_size : (int, int)
+        VET sensor, (width, height) in pixels.
+    measure_fraction : float
+        Light on the measurement sensor relative to the VET sensor (1.0 for a 50/50
+        splitter and identical sensors).
+    homography : 3x3 list
+        LCoS cell coordinates -> VET sensor pixel coordinates.
+    """
+
+    frame_s: float = 0.99975
+    subframe_s: float = 0.00758
+    full_well_e: float = 10000.0
+    read_noise_e: float = 5.0
+    adc_bits: int = 12
+    dark_current_e_s: float = 10.0
+    threshold_frac: float = 0.8
+    latency_subframes: int = 1
+    leakage: float = 0.002
+    lcos_cells: tuple[int, int] = (1024, 600)
+    sensor_size: tuple[int, int] = (1280, 1024)
+    measure_fraction: float = 1.0
+    homography: list[list[float]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.lcos_cells = (int(self.lcos_cells[0]), int(self.lcos_cells[1]))
+        self.sensor_size = (int(self.sensor_size[0]), int(self.sensor_size[1]))
+        if not self.homography:
+            self.homography = default_homography(self.lcos_cells, self.sensor_size)
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` with a full sentence if a parameter is nonsense."""
+        checks = [
+            (self.frame_s > 0, "frame length must be positive"),
+            (0 < self.subframe_s <= self.frame_s, "subframe length must be in (0, frame length]"),
+            (self.full_well_e > 0, "full well must be positive"),
+            (self.read_noise_e >= 0, "read noise must be non-negative"),
+            (4 <= self.adc_bits <= 24, "ADC depth must be 4 to 24 bits"),
+            (self.dark_current_e_s >= 0, "dark current must be non-negative"),
+            (0 < self.threshold_frac <= 1, "threshold must be a fraction of the full well in (0, 1]"),
+            (self.latency_subframes >= 0, "latency must be a non-negative number of subframes"),
+            (0 <= self.leakage < 1, "leakage must be in [0, 1)"),
+            (min(self.lcos_cells) > 0, "LCoS grid must have positive size"),
+            (min(self.sensor_size) > 0, "sensor must have positive size"),
+            (self.measure_fraction > 0, "measurement light fraction must be positive"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise InputError(f"invalid rig: {message}")
+        h = np.asarray(self.homography, dtype=float)
+        if h.shape != (3, 3) or not np.all(np.isfinite(h)) or abs(np.linalg.det(h)) < 1e-12:
+            raise InputError("invalid rig: homography must be a finite, invertible 3x3 matrix")
+
+    # Derived quantities -------------------------------------------------------------
+    @property
+    def n_subframes(self) -> int:
+        """K: whole subframes that fit in the frame."""
+        return int(math.floor(self.frame_s / self.subframe_s + 1e-9))
+
+    @property
+    def gain_dn_per_e(self) -> float:
+        """ADC conversion gain: full well maps to the top code."""
+        return (2**self.adc_bits - 1) / self.full_well_e
+
+    @property
+    def max_dn(self) -> float:
+        return float(2**self.adc_bits - 1)
+
+    @property
+    def threshold_e(self) -> float:
+        return self.threshold_frac * self.full_well_e
+
+    @property
+    def threshold_dn(self) -> float:
+        return self.threshold_e * self.gain_dn_per_e
+
+    # Serialisation -------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["lcos_cells"] = list(self.lcos_cells)
+        d["sensor_size"] = list(self.sensor_size)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> RigParams:
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise InputError(f"invalid rig: unknown parameter(s) {sorted(unknown)}")
+        try:
+            return cls(**d)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"invalid rig: {exc}") from None
+
+    def replace(self, **changes: Any) -> RigParams:
+        return dataclasses.replace(self, **changes)
