@@ -1,0 +1,1 @@
+"""vet's command-line layer: thin click commands over :mod:`stages`."""

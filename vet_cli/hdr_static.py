@@ -1,0 +1,42 @@
+"""vet hdr-static: static HDR reconstruction of a capture."""
+
+from __future__ import annotations
+
+import click
+
+from ._common import command, log, verbosity_options
+
+
+@click.command(
+    "hdr-static",
+    help="""Recover HDR radiance from CAPTURE assuming a still scene.
+
+L = (I/g - d Tf) / (T + eps (Tf - T)): the exposure-time image T already holds when
+each pixel's LCoS cell closed (latency included); eps is the leakage, d the dark
+current. Output is float32 EXR in the scene's units for simulated captures, else DN/s,
+with a mask layer (0 valid, 1 recovered from measuring images, 2 saturated lower bound,
+3 below noise floor). CAPTURE may be a file, a capture folder, or - (stdin).
+
+\b
+Example:
+  vet hdr-static cap.exr -o hdr.exr
+  vet simulate builtin:chart -o - | vet hdr-static - -o - | vet tonemap - -o chart.png
+""",
+)
+@click.argument("capture")
+@click.option("-o", "--output", required=True, help="HDR image (.exr or .npz), or - for stdout (EXR).")
+@verbosity_options
+@command("hdr-static")
+def cli(capture: str, output: str) -> None:
+    import numpy as np
+
+    from stages.formats import read_capture, write_hdr
+    from stages.hdr_static import hdr_static
+
+    cap = read_capture(capture)
+    img = hdr_static(cap)
+    counts = np.bincount(img.mask.ravel(), minlength=4)
+    log.debug("hdr-static: mask counts valid=%d recovered=%d saturated=%d floor=%d", *counts[:4])
+    if counts[2]:
+        log.warning("%d pixels saturated in every image: values are lower bounds (mask code 2)", counts[2])
+    write_hdr(output, img)

@@ -1,0 +1,44 @@
+"""Options shared by several commands (rig parameters)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import click
+
+# (option, RigParams field, type, help)
+RIG_OPTIONS = [
+    ("--frame-s", "frame_s", float, "Frame length Tf, seconds [0.99975]."),
+    ("--subframe-s", "subframe_s", float, "Measuring subframe length, seconds [0.00758]."),
+    ("--full-well", "full_well_e", float, "Full well, electrons [10000]."),
+    ("--read-noise", "read_noise_e", float, "Read noise, electrons rms [5]."),
+    ("--adc-bits", "adc_bits", int, "ADC depth, bits [12]."),
+    ("--dark-current", "dark_current_e_s", float, "Dark current, electrons/s [10]."),
+    ("--threshold", "threshold_frac", float, "Closure threshold, fraction of full well [0.8]."),
+    ("--latency", "latency_subframes", int, "Closure latency, subframes [1]."),
+    ("--leakage", "leakage", float, "LCoS leakage (closed-cell transmittance) [0.002]."),
+]
+
+
+def rig_options(f: Callable) -> Callable:
+    for opt, _field, typ, hlp in reversed(RIG_OPTIONS):
+        f = click.option(opt, type=typ, default=None, help=hlp)(f)
+    f = click.option("--lcos", "lcos", default=None, metavar="WxH", help="LCoS grid in cells [1024x600].")(f)
+    return f
+
+
+def rig_overrides(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """Pop the rig options out of a command's kwargs as RigParams field overrides."""
+    out: dict[str, Any] = {}
+    for opt, field, _typ, _h in RIG_OPTIONS:
+        key = opt.lstrip("-").replace("-", "_")
+        val = kwargs.pop(key, None)
+        if val is not None:
+            out[field] = val
+    lcos = kwargs.pop("lcos", None)
+    if lcos:
+        from stages.scenes import parse_size
+
+        out["lcos_cells"] = parse_size(lcos)
+    return out

@@ -1,0 +1,64 @@
+"""vet simulate: render a capture from a scene with known motion."""
+
+from __future__ import annotations
+
+import click
+
+from ._common import Progress, command, log, verbosity_options
+from .options import rig_options, rig_overrides
+
+BUILTINS = "interior, chart"
+METHODS = ["vet", "long", "short", "adaptive-attenuation"]
+
+
+@click.command(
+    "simulate",
+    help=f"""Render what a VET rig records from SCENE moving with --motion.
+
+SCENE is any linear image OpenImageIO reads (EXR, HDR, TIFF, PFM) or builtin:NAME, a
+procedural scene (builtins: {BUILTINS}). The capture keeps the true scene at t = 0 and
+the true motion for scoring. --method renders a comparison method instead of VET
+from the same scene, motion and noise.
+
+\b
+Motion SPEC: none | translate:VX,VY | object:X,Y,W,H:VX,VY | rotate:DEG_PER_S[,CX,CY]
+(pixels or degrees per second).
+
+\b
+Example:
+  vet simulate builtin:interior --motion translate:30,0 --seed 1 -o cap.exr
+""",
+)
+@click.argument("scene")
+@click.option("-o", "--output", required=True, help="Capture file (.exr or .npz), or - for stdout (EXR).")
+@click.option("--motion", default="none", show_default=True, help="Motion SPEC (see above).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed for all noise.")
+@click.option("--size", default=None, metavar="WxH", help="Resample the scene to this sensor size.")
+@click.option("--method", type=click.Choice(METHODS), default="vet", show_default=True,
+              help="What records the scene.")
+@click.option("--measure-bins", type=click.IntRange(0, 1000), default=8, show_default=True,
+              help="Time bins of measuring images stored in the capture (0: none).")
+@click.option("--radiance-scale", type=float, default=None,
+              help="Electrons/s per scene unit [p99.9 luminance reaches the threshold in one subframe].")
+@rig_options
+@verbosity_options
+@command("simulate")
+def cli(scene: str, output: str, motion: str, seed: int, size: str | None, method: str,
+        measure_bins: int, radiance_scale: float | None, **kwargs) -> None:
+    from stages.formats import write_capture
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import load_scene, parse_size
+    from stages.simulate import simulate
+
+    overrides = rig_overrides(kwargs)
+    mot = parse_motion(motion)
+    sc = load_scene(scene, parse_size(size))
+    h, w = sc.radiance.shape[:2]
+    rig = RigParams(sensor_size=(w, h), **overrides)
+    log.debug("simulate: %s %dx%d %s, %d subframes", scene, w, h, mot.spec, rig.n_subframes)
+    progress = Progress(f"simulate {method}")
+    caps = simulate(sc, mot, rig, seed=seed, methods=[method], measure_bins=measure_bins,
+                    progress=progress, scale=radiance_scale)
+    progress.finish()
+    write_capture(output, caps[method])
