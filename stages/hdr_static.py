@@ -71,7 +71,7 @@ def hdr_static(cap: Capture) -> HDRImage:
     rate = signal_e / expo
 
     mask = np.zeros(cap.shape, np.uint8)
-    vet_sat = cap.I >= np.float32(rig.max_dn - 0.5)
+    vet_sat = cap.I >= np.float32(rig.saturation_dn)
     if vet_sat.any():
         sat_px = vet_sat.any(axis=2)
         rec, rec_ok = _rate_from_measure(cap)
@@ -115,8 +115,8 @@ def _rate_from_measure(cap: Capture) -> tuple[np.ndarray | None, np.ndarray]:
     n_sub = max(1, int(round(dur / rig.subframe_s)))
     m0 = cap.measure[0]
     rate = (m0 / g - np.float32(rig.dark_current_e_s * dur)) / np.float32(dur * rig.measure_fraction)
-    # Valid unless some subframe of the bin clipped (a clipped subframe reads max DN).
-    ok = (m0 < np.float32(n_sub * rig.max_dn * 0.98)).all(axis=2)
+    # Valid unless some subframe of the bin may have clipped; for a still pixel the
+    # subframes are alike, so the bin mean per subframe tells.
     per_sub = m0 / n_sub
-    ok &= (per_sub < np.float32(rig.max_dn * 0.95)).all(axis=2)
+    ok = (per_sub < np.float32(rig.saturation_dn)).all(axis=2)
     return rate.astype(np.float32), ok

@@ -124,6 +124,12 @@ class RigParams:
         return float(2**self.adc_bits - 1)
 
     @property
+    def saturation_dn(self) -> float:
+        """Codes at or above this may be clipped: the full well sits at the top code and
+        read noise after the well spreads clipped pixels 3 sigma (plus one code) below it."""
+        return self.max_dn - 3.0 * self.read_noise_e * self.gain_dn_per_e - 1.0
+
+    @property
     def threshold_e(self) -> float:
         return self.threshold_frac * self.full_well_e
 

@@ -1,0 +1,151 @@
+"""The command-line contract: exit codes, one-line errors, no partial outputs, pipes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from stages.formats import write_capture, write_layered
+from tests.conftest import run_vet
+from vet_cli.main import cli
+
+
+def invoke(*args: str):
+    return CliRunner().invoke(cli, list(map(str, args)))
+
+
+def stderr_of(result) -> str:
+    return result.stderr if hasattr(result, "stderr") else result.output
+
+
+# --- bad inputs: each must give exit 1, one line, no traceback, no output -------------
+
+
+def _random_exr(p):
+    p.write_bytes(np.random.default_rng(0).bytes(5000))
+
+
+def _truncated_exr(p, cap):
+    write_capture(p.with_suffix(".full.exr"), cap)
+    data = p.with_suffix(".full.exr").read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+
+
+def _pickled_npz(p):
+    np.savez(p, **{"layer:I": np.array([{"evil": 1}], dtype=object)},
+             __meta__=np.array('{"kind": "capture"}'), __channels__=np.array('{"I": ["Y"]}'))
+
+
+def _shape_mismatch_npz(p, cap):
+    data = cap.to_layered()
+    arrays = {"layer:I": data.layers["I"], "layer:T": data.layers["T"][:-3, :-2]}
+    np.savez(p, **arrays, __meta__=np.array(json.dumps(data.meta)),
+             __channels__=np.array(json.dumps({"I": data.channels["I"], "T": ["Y"]})))
+
+
+def _nan_in_t(p, cap):
+    data = cap.to_layered()
+    data.layers["T"][3, 4, 0] = np.nan
+    write_layered(p, data)
+
+
+BAD_INPUTS = {
+    "missing file": (lambda p, cap: None, "no such file"),
+    "random bytes named .exr": (lambda p, cap: _random_exr(p), "not an OpenEXR"),
+    "truncated EXR": (_truncated_exr, "EXR"),
+    "npz holding a pickled object": (lambda p, cap: _pickled_npz(p), "pickle"),
+    "I and T shapes differ": (_shape_mismatch_npz, "differ"),
+    "NaN in T": (_nan_in_t, "NaN"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUTS))
+@pytest.mark.parametrize("existing", [False, True])
+def test_bad_input_exit_1_one_line_no_output(tmp_path, small_capture, case, existing):
+    make, expect = BAD_INPUTS[case]
+    suffix = ".npz" if case in ("npz holding a pickled object", "I and T shapes differ") else ".exr"
+    bad = tmp_path / f"bad{suffix}"
+    make(bad, small_capture)
+    out = tmp_path / "out.exr"
+    if existing:
+        out.write_bytes(b"previous result")
+    res = run_vet("hdr-static", bad, "-o", out)
+    err = res.stderr.decode()
+    assert res.returncode == 1, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("vet hdr-static: error: ")
+    assert expect.lower() in lines[0].lower()
+    assert "Traceback" not in err
+    if existing:
+        assert out.read_bytes() == b"previous result"
+    else:
+        assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".vet-tmp")) == []
+
+
+def test_verbose_shows_traceback(tmp_path):
+    _random_exr(tmp_path / "bad.exr")
+    res = run_vet("-v", "hdr-static", tmp_path / "bad.exr", "-o", tmp_path / "o.exr")
+    assert res.returncode == 1 and b"Traceback" in res.stderr
+
+
+def test_usage_errors_exit_2():
+    assert invoke("hdr-static").exit_code == 2  # missing argument
+    assert invoke("simulate", "builtin:chart", "-o", "x.exr", "--method", "bogus").exit_code == 2
+    assert invoke("no-such-command").exit_code == 2
+
+
+def test_runtime_errors_in_arguments_exit_1(tmp_path):
+    res = invoke("simulate", "builtin:nope", "-o", tmp_path / "c.exr")
+    assert res.exit_code == 1 and "unknown builtin scene" in stderr_of(res)
+    res = invoke("simulate", "builtin:chart", "--motion", "warp:9", "-o", tmp_path / "c.exr")
+    assert res.exit_code == 1 and "invalid motion" in stderr_of(res)
+    res = invoke("simulate", "builtin:chart", "--size", "10by10", "-o", tmp_path / "c.exr")
+    assert res.exit_code == 1 and "invalid size" in stderr_of(res)
+    res = invoke("simulate", "builtin:chart", "--leakage", "2", "-o", tmp_path / "c.exr")
+    assert res.exit_code == 1 and "leakage" in stderr_of(res)
+    assert not (tmp_path / "c.exr").exists()
+
+
+def test_simulate_help_names_the_builtin_scenes():
+    res = invoke("simulate", "--help")
+    assert res.exit_code == 0
+    assert "interior" in res.output and "chart" in res.output
+
+
+def test_top_level_help_lists_every_command():
+    res = invoke("--help")
+    for name in ("simulate", "hdr-static", "deblur", "tonemap", "calibrate", "capture",
+                 "evaluate", "batch", "info"):
+        assert name in res.output
+
+
+def test_simulate_then_hdr_static_files_and_info(tmp_path):
+    cap, hdr = tmp_path / "c.npz", tmp_path / "h.exr"
+    assert invoke("simulate", "builtin:chart", "--size", "64x48", "--seed", "2", "-o", cap).exit_code == 0
+    assert invoke("hdr-static", cap, "-o", hdr).exit_code == 0
+    res = invoke("info", hdr)
+    info = json.loads(res.output)
+    assert info["metadata"]["kind"] == "hdr"
+    assert [p["step"] for p in info["metadata"]["provenance"]] == ["simulate", "hdr-static"]
+    assert info["size"] == {"width": 64, "height": 48}
+
+
+def test_pipe_through_stdin_and_stdout(tmp_path):
+    sim = run_vet("simulate", "builtin:chart", "--size", "64x48", "-o", "-")
+    assert sim.returncode == 0 and sim.stdout[:4] == b"\x76\x2f\x31\x01"
+    assert b"\n" not in sim.stderr or b"vet:" in sim.stderr  # logs only on stderr
+    hdr = run_vet("hdr-static", "-", "-o", "-", input=sim.stdout)
+    assert hdr.returncode == 0, hdr.stderr
+    info = run_vet("info", "-", input=hdr.stdout)
+    assert json.loads(info.stdout)["metadata"]["kind"] == "hdr"
+
+
+def test_empty_stdin_is_a_clear_error():
+    res = run_vet("hdr-static", "-", "-o", "-", input=b"")
+    assert res.returncode == 1 and b"standard input is empty" in res.stderr
+    assert res.stdout == b""

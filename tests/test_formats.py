@@ -1,0 +1,191 @@
+"""File formats: round trips, metadata visibility, streams, atomicity, safe parsing."""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.errors import FormatError, InputError
+from stages.formats import (
+    HDRImage,
+    Layered,
+    read_capture,
+    read_hdr,
+    read_layered,
+    write_capture,
+    write_hdr,
+    write_layered,
+)
+from stages.formats import io as vio
+
+
+@pytest.mark.parametrize("ext", ["exr", "npz"])
+def test_capture_round_trip_keeps_every_layer_and_metadata(tmp_path, small_capture, ext):
+    path = tmp_path / f"cap.{ext}"
+    write_capture(path, small_capture)
+    back = read_capture(path)
+    np.testing.assert_array_equal(back.I, small_capture.I)
+    np.testing.assert_array_equal(back.T, small_capture.T)
+    np.testing.assert_array_equal(back.measure, small_capture.measure)
+    np.testing.assert_allclose(back.measure_times, small_capture.measure_times)
+    np.testing.assert_array_equal(back.truth, small_capture.truth)
+    np.testing.assert_array_equal(back.truth_motion, small_capture.truth_motion)
+    assert back.channels == small_capture.channels == ["R", "G", "B"]
+    assert back.rig == small_capture.rig
+    assert back.radiance_scale == pytest.approx(small_capture.radiance_scale)
+    assert back.meta["provenance"][0]["step"] == "simulate"
+
+
+def test_exr_and_npz_hold_the_same_content(tmp_path, small_capture):
+    write_capture(tmp_path / "a.exr", small_capture)
+    write_capture(tmp_path / "a.npz", small_capture)
+    a, b = read_layered(tmp_path / "a.exr"), read_layered(tmp_path / "a.npz")
+    assert a.channels == b.channels
+    for k in a.layers:
+        np.testing.assert_array_equal(a.layers[k], b.layers[k])
+    assert a.meta == b.meta
+
+
+def test_channel_order_survives_even_though_exr_reorders(tmp_path):
+    data = Layered(meta={"kind": "test"})
+    arr = np.arange(4 * 5 * 3, dtype=np.float32).reshape(4, 5, 3)
+    data.add("", arr, ["B", "G", "R"])  # deliberately not alphabetical/RGB order
+    write_layered(tmp_path / "x.exr", data)
+    back = read_layered(tmp_path / "x.exr")
+    assert back.channels[""] == ["B", "G", "R"]
+    np.testing.assert_array_equal(back.layers[""], arr)
+
+
+def test_single_channel_layer_is_not_corrupted(tmp_path):
+    # OIIO silently corrupts 2-D arrays; the container must always pass (H, W, C).
+    data = Layered(meta={"kind": "test"})
+    arr = np.random.default_rng(1).random((7, 9)).astype(np.float32)
+    data.add("T", arr, ["Y"])
+    write_layered(tmp_path / "t.exr", data)
+    np.testing.assert_array_equal(read_layered(tmp_path / "t.exr").layers["T"][:, :, 0], arr)
+
+
+def test_large_values_stay_float32_not_half(tmp_path):
+    data = Layered(meta={"kind": "test"})
+    data.add("I", np.full((3, 3, 1), 1e6, np.float32), ["Y"])
+    write_layered(tmp_path / "big.exr", data)
+    assert read_layered(tmp_path / "big.exr").layers["I"].max() == 1e6
+
+
+def test_metadata_readable_by_oiiotool(tmp_path, small_capture):
+    oiiotool = shutil.which("oiiotool") or str(Path(sys.executable).parent / "oiiotool")
+    if not Path(oiiotool).exists():
+        pytest.skip("oiiotool not installed")
+    write_capture(tmp_path / "c.exr", small_capture)
+    out = subprocess.run([oiiotool, "--info", "-v", str(tmp_path / "c.exr")], capture_output=True, text=True)
+    assert 'vet:kind: "capture"' in out.stdout
+    line = next(ln for ln in out.stdout.splitlines() if "vet:meta" in ln)
+    assert '"frame_s": 0.99975' in line and '"radiance_scale"' in line
+
+
+def test_hdr_round_trip_and_foreign_exr(tmp_path):
+    rad = np.random.default_rng(2).random((6, 8, 3)).astype(np.float32) * 1e4
+    mask = np.zeros((6, 8), np.uint8)
+    mask[0, 0] = 3
+    write_hdr(tmp_path / "h.exr", HDRImage(rad, ["R", "G", "B"], {"units": "scene"}, mask))
+    back = read_hdr(tmp_path / "h.exr")
+    np.testing.assert_array_equal(back.radiance, rad)
+    assert back.mask[0, 0] == 3 and back.meta["units"] == "scene"
+    # A plain RGBA EXR from elsewhere reads as radiance, alpha ignored.
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(8, 6, 4, "float")
+    out = oiio.ImageOutput.create(str(tmp_path / "plain.exr"))
+    out.open(str(tmp_path / "plain.exr"), spec)
+    out.write_image(np.dstack([rad, np.ones((6, 8), np.float32)]))
+    out.close()
+    plain = read_hdr(tmp_path / "plain.exr")
+    assert plain.channels == ["R", "G", "B"]
+    np.testing.assert_allclose(plain.radiance, rad, rtol=1e-6)
+
+
+def test_sniff_by_magic_not_extension(tmp_path, small_capture):
+    write_capture(tmp_path / "c.npz", small_capture)
+    renamed = tmp_path / "looks_like.exr"
+    (tmp_path / "c.npz").rename(renamed)
+    assert vio.sniff(renamed) == "npz"
+    assert read_capture(renamed).I.shape == small_capture.I.shape
+
+
+def test_stdin_is_spooled_and_sniffed(tmp_path, small_capture, monkeypatch):
+    write_capture(tmp_path / "c.exr", small_capture)
+    payload = (tmp_path / "c.exr").read_bytes()
+    monkeypatch.setattr(sys, "stdin", io.TextIOWrapper(io.BytesIO(payload)))
+    cap = read_capture("-")
+    np.testing.assert_array_equal(cap.I, small_capture.I)
+
+
+def test_atomic_output_failure_leaves_existing_file_untouched(tmp_path):
+    target = tmp_path / "keep.exr"
+    target.write_bytes(b"precious")
+    with pytest.raises(RuntimeError), vio.atomic_output(target) as tmp:
+        tmp.write_bytes(b"half-writ")
+        raise RuntimeError("killed")
+    assert target.read_bytes() == b"precious"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.exr"]
+
+
+def test_pickled_npz_is_refused(tmp_path):
+    p = tmp_path / "evil.npz"
+    np.savez(p, **{"layer:I": np.array([{"x": 1}], dtype=object)}, __meta__=np.array("{}"))
+    with pytest.raises(FormatError, match="pickle"):
+        read_layered(p)
+
+
+def test_declared_size_over_limit_is_refused_before_allocating(tmp_path, small_capture, monkeypatch):
+    write_capture(tmp_path / "c.npz", small_capture)
+    write_capture(tmp_path / "c.exr", small_capture)
+    monkeypatch.setattr(vio, "MAX_INPUT_BYTES", 1000)
+    for name in ("c.npz", "c.exr"):
+        with pytest.raises(FormatError, match="over the limit"):
+            read_layered(tmp_path / name)
+
+
+def test_npz_with_foreign_members_is_refused(tmp_path):
+    p = tmp_path / "x.npz"
+    with zipfile.ZipFile(p, "w") as zf:
+        zf.writestr("readme.txt", "hello")
+    with pytest.raises(FormatError, match="unexpected member"):
+        read_layered(p)
+
+
+def test_wrong_kind_is_refused(tmp_path):
+    write_hdr(tmp_path / "h.exr", HDRImage(np.ones((4, 4, 1), np.float32), ["Y"], {}))
+    with pytest.raises(FormatError, match="not a capture"):
+        read_capture(tmp_path / "h.exr")
+
+
+def test_capture_folder_is_accepted(tmp_path, small_capture):
+    folder = tmp_path / "cap1"
+    folder.mkdir()
+    write_capture(folder / "capture.exr", small_capture)
+    assert read_capture(folder).shape == small_capture.shape
+    with pytest.raises(InputError, match="no capture file"):
+        read_capture(tmp_path)
+
+
+def test_unknown_output_extension(tmp_path, small_capture):
+    with pytest.raises(InputError, match="unsupported output extension"):
+        write_capture(tmp_path / "c.png", small_capture)
+    assert not list(tmp_path.iterdir())
+
+
+def test_metadata_is_json_serialisable_and_complete(tmp_path, small_capture):
+    write_capture(tmp_path / "c.npz", small_capture)
+    meta = read_layered(tmp_path / "c.npz").meta
+    json.dumps(meta)
+    for key in ("rig", "units", "radiance_scale", "method", "motion", "seed", "provenance", "measure_times"):
+        assert key in meta

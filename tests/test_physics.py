@@ -1,0 +1,142 @@
+"""Rig physics and the simulator against known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.motion import ObjectMotion, Translate, parse_motion
+from stages.physics import CellMap, ClosureController, expose, shot_noise
+from stages.rig import RigParams
+from stages.scenes import Scene
+from stages.simulate import simulate
+
+
+def flat_scene(value: float, w: int = 40, h: int = 32) -> Scene:
+    return Scene(np.full((h, w, 1), value, np.float32), ["Y"], "flat")
+
+
+@pytest.mark.parametrize("lam", [0.5, 5.0, 29.0, 31.0, 400.0, 5000.0])
+def test_shot_noise_has_poisson_mean_and_variance(lam, rng):
+    x = shot_noise(np.full(200_000, lam, np.float32), rng)
+    assert x.mean() == pytest.approx(lam, rel=0.01, abs=0.01)
+    assert x.var() == pytest.approx(lam, rel=0.03)
+
+
+def test_expose_clips_at_full_well_and_adc(rng):
+    rig = RigParams(sensor_size=(4, 4))
+    dn = expose(np.full(1000, 1e6, np.float32), rig, rng)
+    assert dn.max() == rig.max_dn
+    dark = expose(np.zeros(100_000, np.float32), rig, rng)
+    assert dark.min() == 0
+    # Read noise only: 5 e- rms at 0.4095 DN/e- -> about 2 DN rms before clipping at 0.
+    assert 0.5 < dark.mean() < 1.5
+
+
+def test_cell_map_default_homography_tiles_the_sensor():
+    rig = RigParams(sensor_size=(1280, 1024))
+    cm = CellMap.for_rig(rig, (1024, 1280))
+    assert cm.pixel_cell.min() == 0 and cm.pixel_cell.max() == rig.lcos_cells[0] * rig.lcos_cells[1] - 1
+    # 1280/1024 = 1.25 px per cell across, 1024/600 = 1.71 down: pixel centres x = 2.5
+    # and 3.5 fall in cell 2; rows y = 0.5 and 1.5 both in cell row 0.
+    assert cm.pixel_cell[0, 2] == cm.pixel_cell[0, 3] == 2
+    assert cm.pixel_cell[0, 0] == cm.pixel_cell[1, 0] == 0
+
+
+def test_cell_closes_on_its_brightest_pixel():
+    # 2x2 pixels per cell; one bright pixel makes the whole cell close.
+    rig = RigParams(sensor_size=(4, 4), lcos_cells=(2, 2), latency_subframes=1)
+    cm = CellMap.for_rig(rig, (4, 4))
+    ctrl = ClosureController(rig, cm)
+    frame = np.zeros((4, 4, 1), np.float32)
+    frame[0, 0] = rig.threshold_dn  # top-left cell's brightest pixel reaches theta at once
+    new = ctrl.step(frame, 0)
+    assert list(new) == [0]
+    t = ctrl.exposure_time()
+    assert np.all(t[:2, :2] == pytest.approx(2 * rig.subframe_s))  # end of subframe 0 + 1 latency
+    assert np.all(t[2:, :] == pytest.approx(rig.frame_s))
+
+
+def test_closure_time_matches_the_threshold_arithmetic():
+    """A flat still scene: every pixel crosses theta after n = ceil(theta / per-subframe)
+    subframes and closes latency subframes later."""
+    rig = RigParams(sensor_size=(40, 32), read_noise_e=0.0, dark_current_e_s=0.0)
+    per_sub_e = rig.threshold_e / 9.5  # crosses during the 10th subframe
+    scale = 1.0
+    value = per_sub_e / rig.subframe_s
+    cap = simulate(flat_scene(value), parse_motion("none"), rig, seed=1, scale=scale)["vet"]
+    expected = (10 + rig.latency_subframes) * rig.subframe_s
+    # Shot noise can move the crossing by a subframe for a few cells; the bulk is exact.
+    frac = np.mean(np.isclose(cap.T, expected))
+    assert frac > 0.9
+    assert set(np.round(np.unique(cap.T) / rig.subframe_s).astype(int)) <= {10, 11, 12}
+
+
+def test_leakage_and_dark_current_enter_the_vet_image():
+    rig = RigParams(sensor_size=(40, 32), read_noise_e=0.0, leakage=0.01)
+    value = rig.threshold_e / rig.subframe_s  # crosses in subframe 0, closes at 2 tau
+    cap = simulate(flat_scene(value / 20), parse_motion("none"), rig, seed=2, scale=1.0)["vet"]
+    rate = value / 20
+    t = cap.T[..., None]
+    expect_e = rate * (t + rig.leakage * (rig.frame_s - t)) + rig.dark_current_e_s * rig.frame_s
+    # Per pixel (each pixel has its own closure time); shot noise is ~1% per pixel.
+    ratio = cap.I / rig.gain_dn_per_e / expect_e
+    assert np.median(ratio) == pytest.approx(1.0, abs=0.003)
+
+
+def test_simulate_is_deterministic_under_seed(small_scene):
+    rig = RigParams(sensor_size=(96, 80))
+    a = simulate(small_scene, parse_motion("translate:30,0"), rig, seed=7, measure_bins=2)["vet"]
+    b = simulate(small_scene, parse_motion("translate:30,0"), rig, seed=7, measure_bins=2)["vet"]
+    c = simulate(small_scene, parse_motion("translate:30,0"), rig, seed=8, measure_bins=2)["vet"]
+    np.testing.assert_array_equal(a.I, b.I)
+    np.testing.assert_array_equal(a.measure, b.measure)
+    assert not np.array_equal(a.I, c.I)
+
+
+def test_method_streams_are_independent_of_which_methods_run(small_scene):
+    rig = RigParams(sensor_size=(96, 80))
+    alone = simulate(small_scene, parse_motion("none"), rig, seed=4, methods=["long"])["long"]
+    both = simulate(small_scene, parse_motion("none"), rig, seed=4, methods=["vet", "long"])["long"]
+    np.testing.assert_array_equal(alone.I, both.I)
+
+
+def test_truth_is_scene_at_t0_and_motion_field():
+    rig = RigParams(sensor_size=(40, 32))
+    sc = Scene(np.random.default_rng(0).random((32, 40, 1)).astype(np.float32) + 0.1, ["Y"], "r")
+    cap = simulate(sc, ObjectMotion(5, 6, 10, 8, 40, 10), rig, seed=0)["vet"]
+    np.testing.assert_array_equal(cap.truth, sc.radiance)
+    assert np.all(cap.truth_motion[6:14, 5:15] == [40, 10])
+    assert np.all(cap.truth_motion[:6] == 0)
+
+
+def test_translate_moves_content_by_v_t():
+    img = np.zeros((20, 30, 1), np.float32)
+    img[10, 10] = 1.0
+    moved = Translate(20.0, 0.0).render(img, 0.25)  # 5 px to the right
+    assert moved[10, 15, 0] == pytest.approx(1.0)
+
+
+def test_object_occludes_and_uncovers():
+    img = np.zeros((20, 30, 1), np.float32)
+    img[5:10, 5:10] = 1.0
+    out = ObjectMotion(5, 5, 5, 5, 40.0, 0.0).render(img, 0.25)  # 10 px right
+    assert out[7, 17, 0] == pytest.approx(1.0)  # object arrived
+    assert out[7, 7, 0] == pytest.approx(1.0)  # uncovered area shows the still scene
+
+
+@pytest.mark.parametrize("bad", ["translate:1", "object:1,2,3:4,5", "spin:3", "translate:a,b", "object:0,0,0,5:1,1"])
+def test_bad_motion_specs_are_refused(bad):
+    from stages.errors import InputError
+
+    with pytest.raises(InputError, match="invalid motion"):
+        parse_motion(bad)
+
+
+def test_rig_validation_speaks_sentences():
+    from stages.errors import InputError
+
+    with pytest.raises(InputError, match="leakage"):
+        RigParams(leakage=1.5)
+    with pytest.raises(InputError, match="unknown parameter"):
+        RigParams.from_dict({"frame_s": 1.0, "warp_factor": 9})

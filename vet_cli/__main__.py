@@ -1,0 +1,3 @@
+from vet_cli.main import cli
+
+cli(prog_name="vet")
