@@ -35,14 +35,15 @@ def shot_noise(lam: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def expose(lam_e: np.ndarray, rig: RigParams, rng: np.random.Generator) -> np.ndarray:
-    """Expected electrons -> digital numbers through the full sensor chain (float32 DN)."""
+    """Expected electrons -> digital numbers through the full sensor chain (float32 DN,
+    black-level subtracted: the code range is ``[-black_level_dn, max_dn]``)."""
     e = shot_noise(lam_e, rng)
     np.minimum(e, rig.full_well_e, out=e)
     if rig.read_noise_e > 0:
         e += rig.read_noise_e * rng.standard_normal(e.shape, dtype=np.float32)
     e *= rig.gain_dn_per_e
     np.rint(e, out=e)
-    np.clip(e, 0, rig.max_dn, out=e)
+    np.clip(e, -rig.black_level_dn, rig.max_dn, out=e)
     return e
 
 

@@ -62,6 +62,10 @@ class RigParams:
         splitter and identical sensors).
     homography : 3x3 list
         LCoS cell coordinates -> VET sensor pixel coordinates.
+    black_level_dn : float
+        ADC pedestal. Recorded DN are black-level subtracted (as raw pipelines deliver
+        them), so read noise on dark pixels keeps its sign down to ``-black_level_dn``
+        instead of clipping at zero, which would bias dark sums upwards.
     """
 
     frame_s: float = 0.99975
@@ -77,6 +81,7 @@ class RigParams:
     sensor_size: tuple[int, int] = (1280, 1024)
     measure_fraction: float = 1.0
     homography: list[list[float]] = field(default_factory=list)
+    black_level_dn: float = 64.0
 
     def __post_init__(self) -> None:
         self.lcos_cells = (int(self.lcos_cells[0]), int(self.lcos_cells[1]))
@@ -100,6 +105,7 @@ class RigParams:
             (min(self.lcos_cells) > 0, "LCoS grid must have positive size"),
             (min(self.sensor_size) > 0, "sensor must have positive size"),
             (self.measure_fraction > 0, "measurement light fraction must be positive"),
+            (self.black_level_dn >= 0, "black level must be non-negative"),
         ]
         for ok, message in checks:
             if not ok:

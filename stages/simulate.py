@@ -120,19 +120,28 @@ def simulate(
     rate_still = radiance * np.float32(scale) if still else None
     trans = np.ones((h, w, 1), np.float32)
     eps = np.float32(rig.leakage)
+    meas_gain = np.float32(rig.measure_fraction)
+    dark_sub = np.float32(dark * tau)
+    # One seeded stream per measuring subframe: frames can be rendered and exposed on
+    # worker threads (numpy and OpenCV release the GIL) in any order, same result.
+    sub_streams = streams[-1].spawn(k_sub)
 
     def rate_at(t: float) -> np.ndarray:
         return rate_still if still else motion.render(radiance, t) * np.float32(scale)
 
-    for j in range(k_sub):
-        rate = rate_at((j + 0.5) * tau)
-        step_e = rate * np.float32(tau)
+    def render_subframe(j: int) -> tuple[np.ndarray, np.ndarray | None]:
+        step_e = rate_at((j + 0.5) * tau) * np.float32(tau)
+        frame_dn = None
+        if ctrl is not None:
+            rng_j = np.random.default_rng(sub_streams[j])
+            frame_dn = expose(step_e * meas_gain + dark_sub, rig, rng_j)
+        return step_e, frame_dn
+
+    for j, (step_e, frame_dn) in enumerate(_pipelined(render_subframe, k_sub)):
         if ctrl is not None:
             if j > 0:
-                open_px = ctrl.open_pixels(j)
-                trans[..., 0] = np.where(open_px, np.float32(1.0), eps)
+                trans[..., 0] = np.where(ctrl.open_pixels(j), np.float32(1.0), eps)
             vet_e += step_e * trans
-            frame_dn = expose(step_e * np.float32(rig.measure_fraction) + np.float32(dark * tau), rig, rngs["vet"])
             if measure is not None:
                 measure[bin_of[j]] += frame_dn
             ctrl.step(frame_dn, j)
@@ -213,3 +222,17 @@ def attenuation_from_previous_frame(
     cell_a = np.round(cell_a * 255.0) / 255.0
     cell_a = np.maximum(cell_a, rig.leakage)
     return cellmap.to_pixels(cell_a.astype(np.float32))
+
+
+def _pipelined(fn: Callable[[int], Any], n: int, workers: int = 2, depth: int = 4):
+    """Yield ``fn(0) .. fn(n-1)`` in order, computing up to ``depth`` ahead on threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=workers) as ex:
+        pending = [ex.submit(fn, j) for j in range(min(depth, n))]
+        for j in range(n):
+            result = pending[j].result()
+            pending[j] = None  # type: ignore[call-overload]
+            if j + depth < n:
+                pending.append(ex.submit(fn, j + depth))
+            yield result

@@ -78,7 +78,7 @@ def test_round_trip_builtin(motion):
 def test_round_trip_shared_scenes_half_resolution(shared_hdr, name):
     """Acceptance (issue 2) at half resolution to keep the suite fast; `make bench`
     reports the full-resolution figures."""
-    from stages.scenes import read_linear_image, resample, sanitise, Scene
+    from stages.scenes import Scene, read_linear_image, resample, sanitise
 
     rad, ch = read_linear_image(shared_hdr / f"{name}.exr")
     rad = resample(sanitise(rad, name), (rad.shape[1] // 2, rad.shape[0] // 2))

@@ -28,9 +28,10 @@ def test_expose_clips_at_full_well_and_adc(rng):
     dn = expose(np.full(1000, 1e6, np.float32), rig, rng)
     assert dn.max() == rig.max_dn
     dark = expose(np.zeros(100_000, np.float32), rig, rng)
-    assert dark.min() == 0
-    # Read noise only: 5 e- rms at 0.4095 DN/e- -> about 2 DN rms before clipping at 0.
-    assert 0.5 < dark.mean() < 1.5
+    # Read noise only: 5 e- rms at 0.4095 DN/e- ~ 2 DN rms, unbiased thanks to the pedestal.
+    assert abs(dark.mean()) < 0.02
+    assert dark.std() == pytest.approx(5 * rig.gain_dn_per_e, rel=0.05)
+    assert dark.min() < 0
 
 
 def test_cell_map_default_homography_tiles_the_sensor():
