@@ -1,0 +1,89 @@
+"""Issue 2 benchmarks: simulate, hdr-static against an oiiotool copy, `vet --help`, and
+the static round trip at full resolution on the shared scenes (when present).
+
+Run: python -m tests.benchmarks.bench_foundation
+"""
+
+from __future__ import annotations
+
+import time
+
+from tests.benchmarks.common import BIN, SHARED_HDR, out_dir, table, time_cmd, vet_cmd
+
+SCENES = ["Desk", "CandleGlass", "GoldenGate", "Bonita", "Cannon"]
+
+
+def bench_simulate_and_hdr_static() -> None:
+    out = out_dir()
+    cap = out / "sim1280.exr"
+    sim = vet_cmd("-q", "simulate", "builtin:chart", "--size", "1280x1024", "--motion", "translate:30,0",
+                  "--seed", "1", "-o", cap)
+    t_sim, runs = time_cmd(sim, repeat=2)
+    print(f"simulate 1280x1024 mono, 131 subframes, translate:30,0 (CLI, incl. EXR write): "
+          f"median {t_sim:.2f} s  runs {[round(r, 2) for r in runs]}  target <= 15 s")
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    sc = load_scene("builtin:chart", (1280, 1024))
+    t0 = time.perf_counter()
+    simulate(sc, parse_motion("translate:30,0"), RigParams(sensor_size=(1280, 1024)), seed=1)
+    print(f"simulate stage alone (in-process): {time.perf_counter() - t0:.2f} s")
+
+    oiiotool = BIN / "oiiotool"
+    copy = out / "copy.exr"
+    t_copy, rc = time_cmd([str(oiiotool), str(cap), "-o", str(copy)], repeat=3)
+    t_hdr, rh = time_cmd(vet_cmd("-q", "hdr-static", cap, "-o", out / "hdr1280.exr"), repeat=3)
+    size_mb = cap.stat().st_size / 1e6
+    print(f"capture file: {size_mb:.1f} MB (I, T, 8 measuring bins, truth, truth_motion)")
+    print(f"oiiotool copy: median {t_copy:.3f} s  runs {[round(r, 3) for r in rc]}")
+    print(f"vet hdr-static: median {t_hdr:.3f} s  runs {[round(r, 3) for r in rh]}")
+    print(f"hdr-static / oiiotool copy = {t_hdr / t_copy:.2f}  target <= 1.5")
+
+
+def bench_help() -> None:
+    t, runs = time_cmd(vet_cmd("--help"), repeat=7)
+    print(f"vet --help: median {t:.3f} s  runs {[round(r, 3) for r in runs]}  target <= 0.3 s")
+
+
+def round_trip_table() -> None:
+    """Static round trip, no motion, default rig, full resolution (issue 2 acceptance)."""
+    if not SHARED_HDR.is_dir():
+        print("static round trip: ../shared/data/hdr absent, skipped")
+        return
+    from stages.hdr_static import hdr_static
+    from stages.metrics import stops_error
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    rows = []
+    for name in SCENES:
+        sc = load_scene(str(SHARED_HDR / f"{name}.exr"))
+        h, w = sc.radiance.shape[:2]
+        rig = RigParams(sensor_size=(w, h))
+        caps = simulate(sc, parse_motion("none"), rig, seed=1, methods=["vet", "long", "short"])
+        for method, cap in caps.items():
+            img = hdr_static(cap)
+            e = stops_error(img.radiance, cap.truth, cap.T, rig.frame_s)
+            rows.append({
+                "scene": name, "method": method, "median": e["all"]["median"], "p99": e["all"]["p99"],
+                "rms": e["all"]["rms"], "scale": e["scale"], "nonfinite": e["nonfinite"] + e["nonpositive"],
+                "recovered_px": int((img.mask == 1).sum()), "lower_bound_px": int((img.mask == 2).sum()),
+            })
+    print("static round trip, no motion, default rig, seed 1, stops on luminance, floor 1e-4 x p99.9, "
+          "8 px border excluded (targets for vet: median <= 0.08, p99 <= 1.5, scale within 2%):")
+    print(table(rows, ["scene", "method", "median", "p99", "rms", "scale", "nonfinite",
+                       "recovered_px", "lower_bound_px"]))
+
+
+def main() -> None:
+    bench_help()
+    bench_simulate_and_hdr_static()
+    round_trip_table()
+
+
+if __name__ == "__main__":
+    main()
