@@ -104,31 +104,63 @@ class CellMap:
 class ClosureController:
     """The host's threshold logic: accumulate measuring subframes, close cells.
 
-    Call :meth:`step` once per measuring subframe ``k`` (DN, (H, W, C)); it returns the
-    cells newly commanded closed. ``close_subframe[c]`` is the subframe index from which
-    cell ``c`` is closed (it integrated subframes ``0 .. close_subframe - 1``), with
-    ``NEVER`` for cells still open.
+    Call :meth:`step` once per measuring subframe ``k`` (DN, (H, W) or (H, W, C)); it
+    returns the cells newly commanded closed. ``close_subframe[c]`` is the subframe index
+    from which cell ``c`` is closed (it integrated subframes ``0 .. close_subframe - 1``),
+    with ``NEVER`` for cells still open.
+
+    A cell closes on its brightest pixel: its maximum running sum reaches the threshold
+    exactly when any one of its pixels does, so each step only looks at pixels that
+    crossed (one add, one compare, one scan over the frame) instead of reducing every
+    cell; pixels of closed cells are retired so they never trigger again.
     """
 
     NEVER = np.iinfo(np.int32).max
+    _RETIRED = np.float32(-3.0e38)
 
     def __init__(self, rig: RigParams, cellmap: CellMap):
         self.rig = rig
         self.cellmap = cellmap
         h, w = cellmap.shape
         self.sum_dn = np.zeros((h, w), np.float32)
+        self._flat = self.sum_dn.reshape(-1)
+        self._crossed = np.empty((h, w), bool)
         self.close_subframe = np.full(cellmap.n_cells + 1, self.NEVER, dtype=np.int32)
         self.threshold_dn = np.float32(rig.threshold_dn)
+        # Pixels outside the LCoS footprint (sentinel cell) can never close: retire them.
+        sentinel = cellmap.pixel_cell.reshape(-1) == cellmap.n_cells
+        self._flat[sentinel] = self._RETIRED
+        # cell -> its pixels, as ranges into the cell-sorted pixel order.
+        n = cellmap.n_cells + 1
+        self._cell_start = np.zeros(n, np.int64)
+        self._cell_count = np.zeros(n, np.int64)
+        counts = np.diff(np.append(cellmap._starts, cellmap.pixel_cell.size))
+        self._cell_start[cellmap._present] = cellmap._starts
+        self._cell_count[cellmap._present] = counts
 
     def step(self, frame_dn: np.ndarray, k: int) -> np.ndarray:
         """Add subframe ``k``; return indices of cells that crossed the threshold."""
         brightest = frame_dn.max(axis=2) if frame_dn.ndim == 3 else frame_dn
-        self.sum_dn += brightest
-        cmax = self.cellmap.cell_max(self.sum_dn)
-        new = np.flatnonzero((cmax >= self.threshold_dn) & (self.close_subframe == self.NEVER))
-        new = new[new < self.cellmap.n_cells]
+        np.add(self.sum_dn, brightest, out=self.sum_dn, casting="unsafe")
+        np.greater_equal(self.sum_dn, self.threshold_dn, out=self._crossed)
+        if not self._crossed.any():
+            return np.empty(0, np.int64)
+        pix = np.flatnonzero(self._crossed)
+        new = np.unique(self.cellmap.pixel_cell.reshape(-1)[pix]).astype(np.int64)
+        new = new[self.close_subframe[new] == self.NEVER]
         self.close_subframe[new] = k + 1 + self.rig.latency_subframes
+        self._retire(new)
         return new
+
+    def _retire(self, cells: np.ndarray) -> None:
+        counts = self._cell_count[cells]
+        total = int(counts.sum())
+        if total == 0:
+            return
+        starts = self._cell_start[cells]
+        offsets = np.repeat(starts - np.concatenate(([0], np.cumsum(counts)[:-1])), counts)
+        positions = offsets + np.arange(total)
+        self._flat[self.cellmap._order[positions]] = self._RETIRED
 
     def open_pixels(self, j: int) -> np.ndarray:
         """Boolean (H, W): pixels whose cell is open during subframe ``j``."""

@@ -141,3 +141,26 @@ def test_rig_validation_speaks_sentences():
         RigParams(leakage=1.5)
     with pytest.raises(InputError, match="unknown parameter"):
         RigParams.from_dict({"frame_s": 1.0, "warp_factor": 9})
+
+
+def test_fast_controller_matches_a_plain_per_cell_max(rng):
+    """The incremental controller decides exactly like the textbook rule: close a cell
+    once the maximum running sum over its pixels reaches theta."""
+    rig = RigParams(sensor_size=(50, 40), lcos_cells=(17, 11),
+                    homography=[[2.9, 0.2, 0.5], [-0.1, 3.6, 0.3], [0.0, 0.0, 1.0]])
+    cm = CellMap.for_rig(rig, (40, 50))
+    ctrl = ClosureController(rig, cm)
+    rates = rng.random((40, 50)).astype(np.float32) ** 3 * rig.threshold_dn / 8
+    sums = np.zeros((40, 50), np.float32)
+    ref_close = np.full(cm.n_cells + 1, ClosureController.NEVER, np.int32)
+    for k in range(20):
+        frame = rng.poisson(rates).astype(np.float32)
+        sums += frame
+        cmax = cm.cell_max(sums)
+        crossed = np.flatnonzero((cmax >= rig.threshold_dn) & (ref_close == ClosureController.NEVER))
+        crossed = crossed[crossed < cm.n_cells]
+        ref_close[crossed] = k + 1 + rig.latency_subframes
+        new = ctrl.step(frame, k)
+        np.testing.assert_array_equal(np.sort(new), crossed)
+    np.testing.assert_array_equal(ctrl.close_subframe, ref_close)
+    assert 0 < (ref_close < ClosureController.NEVER).sum() < cm.n_cells
