@@ -1,18 +1,72 @@
-"""vet capture: not built yet."""
+"""vet capture: drive a rig (emulated or real) through one VET frame."""
 
 from __future__ import annotations
 
 import click
 
-from ._common import command, verbosity_options
+from ._common import Progress, command, log, verbosity_options
+from .options import rig_options, rig_overrides
 
 
-@click.command("capture", context_settings={"ignore_unknown_options": True},
-               help="Not built yet in this version of vet (see the project's issues).")
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+@click.command(
+    "capture",
+    help="""Capture one VET frame with RIG into the capture folder FOLDER.
+
+RIG is 'sim', the built-in emulated rig (emulated cameras render --scene moving with
+--motion; an emulated LCoS controller in its own process speaks the real serial
+protocol over a pseudo-terminal), or a rig file (TOML) describing real hardware
+(see stages/devices/rigs.py). T is built from when the controller reports having
+applied each closure. FOLDER gets capture.exr, measure_raw.npy, capture.log and
+capture.json; hdr-static and deblur accept the folder directly.
+
+\b
+Example:
+  vet capture --rig sim --scene builtin:interior --motion translate:30,0 -o cap1
+  vet capture --rig sim --scene scene.exr --link-bps 3e6 -o slow_link
+  vet hdr-static cap1 -o cap1.hdr.exr
+""",
+)
+@click.option("--rig", "rig_spec", required=True, help="'sim' or a rig TOML file.")
+@click.option("-o", "--output", required=True, help="Capture folder (created if missing).")
+@click.option("--calibration", default=None, help="Calibration file from vet calibrate.")
+@click.option("--scene", default="builtin:interior", show_default=True, help="[sim] Scene to render.")
+@click.option("--motion", default="none", show_default=True, help="[sim] Motion SPEC.")
+@click.option("--size", default=None, metavar="WxH", help="[sim] Resample the scene.")
+@click.option("--seed", type=int, default=0, show_default=True, help="[sim] Noise and fault seed.")
+@click.option("--link-bps", type=float, default=None, help="[sim] LCoS link rate, bit/s [unthrottled].")
+@click.option("--link-fault-rate", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+              help="[sim] Per-frame probability of a corrupted, dropped or delayed frame, both ways.")
+@click.option("--disconnect-at", type=int, default=None, metavar="SUBFRAME",
+              help="[sim] Cut the LCoS link at this device subframe.")
+@click.option("--measure-bins", type=click.IntRange(0, 1000), default=8, show_default=True)
+@click.option("--raw-stream/--no-raw-stream", default=True, show_default=True,
+              help="Keep every measuring subframe in measure_raw.npy.")
+@click.option("--format", "fmt", type=click.Choice(["exr", "npz"]), default="exr", show_default=True)
+@rig_options
 @verbosity_options
 @command("capture")
-def cli(args: tuple[str, ...]) -> None:
-    from stages.errors import VetError
+def cli(rig_spec: str, output: str, calibration: str | None, scene: str, motion: str, size: str | None,
+        seed: int, link_bps: float | None, link_fault_rate: float, disconnect_at: int | None,
+        measure_bins: int, raw_stream: bool, fmt: str, **kwargs) -> None:
+    from stages.capture import capture_frame
+    from stages.devices.rigs import SimOptions, open_rig
+    from stages.scenes import parse_size
 
-    raise VetError("this command is not built yet in this version of vet")
+    overrides = rig_overrides(kwargs)
+    if calibration:
+        from stages.calibrate import calibration_overrides
+
+        overrides.update(calibration_overrides(calibration))
+    sim = SimOptions(scene=scene, motion=motion, size=parse_size(size), seed=seed, link_bps=link_bps,
+                     link_fault_rate=link_fault_rate, disconnect_at_subframe=disconnect_at,
+                     overrides=overrides)
+    with open_rig(rig_spec, sim) as rig:
+        log.debug("capture: rig %s, sensor %dx%d", rig.name, *rig.params.sensor_size)
+        progress = Progress("capture")
+        cap = capture_frame(rig, output, measure_bins=measure_bins, raw_stream=raw_stream, fmt=fmt,
+                            progress=progress)
+        progress.finish()
+    stats = cap.meta["capture_stats"]
+    log.info("captured %s: %d closures, %d late (max %d subframes), %d retransmits, %d dropped subframes",
+             output, stats["closures"], stats["late_closures"]["count"], stats["late_closures"]["max"],
+             stats["link"].get("retransmits", 0), len(stats["dropped_subframes"]))

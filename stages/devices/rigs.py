@@ -1,0 +1,191 @@
+"""Opening a rig: the emulated one (``sim``) or real hardware described by a TOML file.
+
+A :class:`Rig` has an LCoS controller (:class:`~stages.devices.lcos.LCoSDevice`), a
+measurement camera and a VET camera, plus the rig's :class:`~stages.rig.RigParams`.
+The capture loop and calibration drive any rig through this one interface.
+
+Rig file (TOML) for real hardware::
+
+    [params]                      # optional RigParams overrides (DESIGN.md §2 defaults)
+    frame_s = 0.99975
+    subframe_s = 0.00758
+
+    [lcos]
+    url = "/dev/ttyACM0"          # any pyserial URL: /dev/ttyUSB0, socket://host:port, ...
+    baudrate = 115200             # optional (UARTs)
+    link_bps = 12e6               # optional: the link's real rate, for ACK timeouts
+
+    [measurement_camera]
+    source = "/dev/video0"        # V4L2 device, video file, image pattern or folder (replay)
+    exposure = 75                 # driver units (V4L2: 100 us)
+
+    [vet_camera]
+    source = "/dev/video1"
+    exposure = 9997
+
+The emulated rig renders ``scene`` moving by ``motion`` through the same physics as
+``vet simulate``; its LCoS controller runs in its own process on a pseudo-terminal and
+speaks the real protocol, with a throttled link and optional fault injection.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..rig import RigParams
+from .cameras import Camera, EmulatedMeasurementCamera, EmulatedVETCamera, OpenCVCamera
+from .lcos import LCoSDevice, SerialLCoS
+
+
+@dataclass
+class SimOptions:
+    """Settings of the emulated rig (``--rig sim``)."""
+
+    scene: str = "builtin:interior"
+    motion: str = "none"
+    size: tuple[int, int] | None = None
+    seed: int = 0
+    link_bps: float | None = None
+    link_fault_rate: float = 0.0
+    disconnect_at_subframe: int | None = None
+    drop_frames: tuple[int, ...] = ()
+    true_homography: list[list[float]] | None = None  # what calibration must discover
+    realtime: bool = True
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Rig:
+    params: RigParams
+    lcos: LCoSDevice
+    measurement: Camera
+    vet: Camera
+    name: str
+    emulator: Any = None  # LCoSEmulator for the emulated rig
+    scale: float | None = None  # e-/s per scene unit (emulated rig)
+    truth: np.ndarray | None = None
+    truth_motion: np.ndarray | None = None
+    channels: list[str] = field(default_factory=lambda: ["Y"])
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def is_emulated(self) -> bool:
+        return self.emulator is not None
+
+    def tick(self, n: int = 1) -> None:
+        """The measurement camera's subframe trigger: on hardware the pulse reaches the
+        controller by wire; on the emulated rig we advance its clock."""
+        if self.emulator is not None:
+            self.emulator.tick(n)
+
+    def close(self) -> Any:
+        """Close everything; returns the emulator's own record on the emulated rig."""
+        record = None
+        for dev in (self.measurement, self.vet):
+            try:
+                dev.close()
+            except Exception:  # noqa: BLE001 - closing must not mask the real error
+                pass
+        try:
+            self.lcos.close()
+        except Exception:  # noqa: BLE001
+            pass
+        if self.emulator is not None:
+            try:
+                record = self.emulator.stop()
+            except Exception:  # noqa: BLE001
+                record = None
+        return record
+
+    def __enter__(self) -> Rig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_sim_rig(opts: SimOptions) -> Rig:
+    """Start the emulated rig: emulator process, driver on its pty, emulated cameras."""
+    from ..motion import parse_motion
+    from ..physics import radiance_scale
+    from ..scenes import load_scene, luminance
+    from .lcos_emulator import LCoSEmulator
+
+    motion = parse_motion(opts.motion)
+    scene = load_scene(opts.scene, opts.size)
+    h, w = scene.radiance.shape[:2]
+    params = RigParams(sensor_size=(w, h), **opts.overrides)
+    scale = radiance_scale(float(np.percentile(luminance(scene.radiance), 99.9)), params)
+    emu = LCoSEmulator(
+        params.lcos_cells,
+        latency_subframes=params.latency_subframes,
+        leakage=params.leakage,
+        link_bps=opts.link_bps,
+        link_fault_rate=opts.link_fault_rate,
+        disconnect_at_subframe=opts.disconnect_at_subframe,
+        seed=opts.seed,
+    )
+    try:
+        lcos = SerialLCoS(emu.port, link_bps=opts.link_bps)
+    except Exception:
+        emu.stop()
+        raise
+    meas = EmulatedMeasurementCamera(scene.radiance, motion, params, scale, seed=opts.seed,
+                                     drop=opts.drop_frames, realtime=opts.realtime)
+    vet = EmulatedVETCamera(scene.radiance, motion, params, scale, seed=opts.seed,
+                            true_homography=None if opts.true_homography is None else np.asarray(opts.true_homography))
+    return Rig(params=params, lcos=lcos, measurement=meas, vet=vet, name="sim", emulator=emu, scale=scale,
+               truth=scene.radiance, truth_motion=motion.velocity((h, w)), channels=list(scene.channels),
+               meta={"scene": scene.source, "motion": motion.spec, "seed": opts.seed,
+                     "link_bps": opts.link_bps, "link_fault_rate": opts.link_fault_rate})
+
+
+def load_rig_file(path: str | Path) -> dict[str, Any]:
+    """Parse and check a rig TOML file."""
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover
+        import tomli as tomllib
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such rig file (use --rig sim for the emulated rig)")
+    try:
+        with open(p, "rb") as f:
+            data = tomllib.load(f)
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: not a valid TOML rig file ({exc})") from None
+    for section in ("lcos", "measurement_camera", "vet_camera"):
+        if not isinstance(data.get(section), dict):
+            raise InputError(f"{p}: rig file lacks the [{section}] section")
+    if "url" not in data["lcos"]:
+        raise InputError(f"{p}: [lcos] needs url = \"/dev/ttyACM0\" (any pyserial URL)")
+    for cam in ("measurement_camera", "vet_camera"):
+        if "source" not in data[cam]:
+            raise InputError(f"{p}: [{cam}] needs source = \"/dev/videoN\" (or a video / frame folder)")
+    return data
+
+
+def open_hardware_rig(path: str | Path) -> Rig:
+    """Open the devices a rig file describes."""
+    data = load_rig_file(path)
+    params = RigParams.from_dict(dict(data.get("params", {})))
+    lc = data["lcos"]
+    lcos = SerialLCoS(str(lc["url"]), baudrate=lc.get("baudrate"), link_bps=lc.get("link_bps"))
+    mc, vc = data["measurement_camera"], data["vet_camera"]
+    meas = OpenCVCamera(mc["source"], exposure=mc.get("exposure"), frame_period_s=params.subframe_s)
+    vet = OpenCVCamera(vc["source"], exposure=vc.get("exposure"), frame_period_s=params.frame_s)
+    return Rig(params=params, lcos=lcos, measurement=meas, vet=vet, name=str(path),
+               channels=["Y"], meta={"rig_file": str(path)})
+
+
+def open_rig(spec: str, sim: SimOptions | None = None) -> Rig:
+    """``"sim"`` -> the emulated rig (with ``sim`` options); else a rig TOML file."""
+    if spec == "sim":
+        return open_sim_rig(sim or SimOptions())
+    return open_hardware_rig(spec)
