@@ -1,18 +1,58 @@
-"""vet deblur: not built yet."""
+"""vet deblur: joint estimation of the sharp HDR image and the motion of a capture."""
 
 from __future__ import annotations
 
 import click
 
-from ._common import command, verbosity_options
+from ._common import Progress, command, log, verbosity_options
 
 
-@click.command("deblur", context_settings={"ignore_unknown_options": True},
-               help="Not built yet in this version of vet (see the project's issues).")
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+@click.command(
+    "deblur",
+    help="""Recover the sharp HDR scene at the start of the frame from a moving CAPTURE.
+
+Estimates the scene L0 and a per-pixel velocity u (px/s) jointly from the variable
+exposure image I, the exposure time image T and the measuring images. --method vet (the
+default) uses a noise-weighted misfit on I and the measuring images, conjugate-gradient
+image solves and Gauss-Newton motion updates, robust at occlusions; --method paper
+reproduces the published method (least squares on I, Laplacian and
+histogram-intersection priors, steepest descent). --motion-init truth starts from (and,
+with the default method, keeps) the simulator's true motion: an oracle for research.
+Output is float32 EXR in the units of hdr-static, with its mask and T.
+
+\b
+Example:
+  vet simulate builtin:interior --motion translate:30,0 -o cap.exr
+  vet deblur cap.exr -o sharp.exr --motion-out motion.exr
+""",
+)
+@click.argument("capture")
+@click.option("-o", "--output", required=True, help="HDR image (.exr or .npz), or - for stdout (EXR).")
+@click.option("--method", type=click.Choice(["vet", "paper"]), default="vet", show_default=True,
+              help="Reconstruction method.")
+@click.option("--motion-init", type=click.Choice(["farneback", "dis", "truth", "zero"]), default=None,
+              help="Start of the motion estimate [farneback].")
+@click.option("--motion-out", default=None, metavar="MOTION.exr",
+              help="Also write the estimated motion (layer 'motion', channels u, v, px/s).")
+@click.option("--motion-picture", default=None, metavar="MOTION.png",
+              help="Also write a colour-wheel picture of the estimated motion.")
 @verbosity_options
 @command("deblur")
-def cli(args: tuple[str, ...]) -> None:
-    from stages.errors import VetError
+def cli(capture: str, output: str, method: str, motion_init: str | None, motion_out: str | None,
+        motion_picture: str | None) -> None:
+    from stages.deblur import deblur
+    from stages.flow import flow_to_color, write_motion
+    from stages.formats import read_capture, write_hdr
+    from stages.formats.images import write_display_image
 
-    raise VetError("this command is not built yet in this version of vet")
+    cap = read_capture(capture)
+    progress = Progress(f"deblur {method}")
+    img, vel = deblur(cap, method=method, motion_init=motion_init, progress=progress)
+    progress.finish()
+    log.debug("deblur: %s in %.1f s", img.meta["method"], img.meta["runtime_s"])
+    write_hdr(output, img)
+    if motion_out:
+        write_motion(motion_out, vel, {"source": capture, "method": img.meta["method"],
+                                       "provenance": img.meta["provenance"]})
+    if motion_picture:
+        write_display_image(motion_picture, flow_to_color(vel))

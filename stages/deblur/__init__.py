@@ -1,0 +1,158 @@
+"""Deblur: estimate the sharp HDR scene at t = 0 and the motion from a moving VET capture.
+
+Two methods share the forward model of :mod:`stages.deblur.operator`:
+
+``vet`` (default, :mod:`stages.deblur.joint`)
+    Noise-weighted (Poisson-Gaussian) misfit on the VET image and the measuring bins,
+    alternating conjugate-gradient image solves and Gauss-Newton motion updates, robust
+    (reweighted) at occlusion boundaries.
+``paper`` (:mod:`stages.deblur.paper`)
+    The published method of Uda et al. (2016): least-squares misfit on I, Laplacian
+    smoothness on the image and on both motion components, a histogram-intersection prior
+    on image-gradient histograms, steepest descent from Farnebäck flow.
+
+References
+----------
+S. Uda, F. Sakaue, J. Sato, "Variable exposure time imaging for obtaining unblurred HDR
+images", IPSJ Trans. Computer Vision and Applications 8, 2016.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ..errors import InputError
+from ..formats.capture import Capture, provenance_entry
+from ..formats.hdr import HDRImage
+from ..hdr_static import hdr_static, rate_to_output_units
+
+log = logging.getLogger(__name__)
+
+METHODS = ("vet", "paper")
+MOTION_INITS = ("farneback", "dis", "truth", "zero")
+
+
+def output_to_rate(cap: Capture, radiance: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`stages.hdr_static.rate_to_output_units` (to electrons/s)."""
+    scale = cap.radiance_scale
+    if scale:
+        return radiance * np.float32(scale)
+    return radiance / np.float32(cap.rig.gain_dn_per_e)
+
+
+def initial_motion(cap: Capture, motion_init: str) -> np.ndarray:
+    """Start velocity field (H, W, 2) px/s: optical flow, the stored truth, or zero."""
+    if motion_init == "truth":
+        if cap.truth_motion is None:
+            raise InputError("--motion-init truth needs a simulated capture with its true motion")
+        return cap.truth_motion.astype(np.float32)
+    if motion_init == "zero":
+        return np.zeros((*cap.shape, 2), np.float32)
+    if motion_init not in ("farneback", "dis"):
+        raise InputError(f"unknown motion initialisation {motion_init!r}; choose from {', '.join(MOTION_INITS)}")
+    from ..flow import estimate_velocity, moving_mask
+
+    vel, _conf = estimate_velocity(cap, motion_init)
+    moving = moving_mask(cap)
+    if moving.mean() < 0.01:  # the bins agree with a still scene: no motion to find
+        return np.zeros_like(vel)
+    return suppress_small_motion(vel)
+
+
+#: Speeds below this (px/s; under two pixels of travel in a 1 s frame) are flow noise
+#: for the purpose of deblurring and are set to zero, so a still scene stays still.
+MIN_SPEED_PX_S = 2.0
+
+
+def suppress_small_motion(vel: np.ndarray, min_speed: float = MIN_SPEED_PX_S) -> np.ndarray:
+    """Zero the velocity where it is below ``min_speed``: deblur must not invent motion."""
+    speed = np.hypot(vel[..., 0], vel[..., 1])
+    if speed.size == 0 or not np.any(speed >= min_speed):
+        return np.zeros_like(vel)
+    return np.where((speed < min_speed)[..., None], 0.0, vel).astype(np.float32)
+
+
+def deblur(
+    cap: Capture,
+    method: str = "vet",
+    motion_init: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    options: object | None = None,
+    truth_cb: Callable[[np.ndarray], float] | None = None,
+) -> tuple[HDRImage, np.ndarray]:
+    """Deblur a VET capture.
+
+    Parameters
+    ----------
+    cap : Capture
+        A VET capture (method ``vet``) with its exposure time image and, for motion
+        estimation, measuring images.
+    method : {'vet', 'paper'}
+        The default joint method or the published one.
+    motion_init : {'farneback', 'dis', 'truth', 'zero'}, optional
+        Where the motion starts; default Farnebäck (the paper's choice).
+    progress : callable, optional
+        ``progress(done, total)``.
+    options : JointOptions or PaperOptions, optional
+        Tuning of the method.
+    truth_cb : callable, optional
+        Called with intermediate images in electrons/s, for error-vs-iteration figures.
+
+    Returns
+    -------
+    image : HDRImage
+        Radiance at t = 0 in the units of hdr-static (scene units for simulated
+        captures, else DN/s), with hdr-static's mask and the capture's T.
+    velocity : ndarray of shape (H, W, 2)
+        The estimated motion, px/s (``D(x, t) = u(x) t``).
+    """
+    if method not in METHODS:
+        raise InputError(f"unknown deblur method {method!r}; choose from {', '.join(METHODS)}")
+    if cap.method != "vet":
+        raise InputError(f"deblur needs a VET capture, not a {cap.method!r} one")
+    motion_init = motion_init or "farneback"
+    t_start = time.perf_counter()
+    static = hdr_static(cap)
+    L_init = output_to_rate(cap, static.radiance).astype(np.float32)
+    vel0 = initial_motion(cap, motion_init)
+    rig = cap.rig
+    tf = float(cap.meta.get("integration_s", rig.frame_s))
+    saturated = np.isin(static.mask, (1, 2))
+    if method == "vet":
+        from .joint import JointOptions, deblur_joint
+        from .problem import observations
+
+        moving = bool(np.any(vel0 != 0))
+        opts = options if options is not None else JointOptions(update_motion=motion_init != "truth" and moving)
+        obs = observations(cap, use_measure=opts.use_measure)
+        L, vel = deblur_joint(obs, L_init, vel0, cap.T, tf, rig.subframe_s, rig.leakage, saturated,
+                              opts, progress=progress, truth_cb=truth_cb,
+                              still=~np.any(vel0 != 0, axis=2) if motion_init != "truth" else None)
+        name = "vet-deblur"
+    else:
+        from .paper import PaperOptions, deblur_paper
+        from .problem import observations
+
+        opts = options if options is not None else PaperOptions()
+        obs = observations(cap, use_measure=False)
+        L, vel = deblur_paper(obs, L_init, vel0, cap.T, tf, rig.subframe_s, rig.leakage, static,
+                              saturated, opts, progress=progress, truth_cb=truth_cb)
+        name = "vet-deblur-paper"
+    # Pixels hdr-static could only bound keep its value (the deblur has no data there).
+    L = np.where(saturated[..., None], np.maximum(L, L_init), L)
+    radiance, units = rate_to_output_units(cap, L.astype(np.float32))
+    meta = dict(static.meta)
+    meta.update(
+        method=name,
+        motion_init=motion_init,
+        runtime_s=round(time.perf_counter() - t_start, 3),
+        provenance=list(cap.meta.get("provenance", []))
+        + [provenance_entry("deblur", method=method, motion_init=motion_init)],
+    )
+    meta["units"] = units
+    return HDRImage(radiance=radiance.astype(np.float32), channels=list(cap.channels), meta=meta,
+                    mask=static.mask, exposure_time=cap.T), vel

@@ -1,0 +1,350 @@
+"""The default deblur: noise-weighted joint estimation of the sharp image and the motion.
+
+Minimises over the scene at t = 0, ``L0`` (electrons/s), and a per-pixel constant
+velocity ``u`` (px/s)::
+
+    sum_x  w(x) rho(A(u) L0 - y)^2                      VET image, Poisson-Gaussian weights
+  + sum_b sum_x  w_b(x) rho(A_b(u) L0 - y_b)^2          measuring bins (less blurred, noisier)
+  + lam sum_edges  P_e c_e ((L0_i - L0_j) / ref_e)^2    edge-preserving relative smoothness
+  + alpha |grad u|^2                                    smooth motion
+  + mu sum_sat (L0 - L_static)^2 / L_static^2           saturated pixels keep hdr-static
+
+by alternation: the image step is a linear least-squares problem solved with
+Jacobi-preconditioned conjugate gradients (:func:`~stages.deblur.problem.pcg`), warm
+started; the motion step is a damped Gauss-Newton step on ``u`` with the Laplacian
+smoothness, solved by conjugate gradients; the weights ``rho`` (Cauchy, on normalised
+residuals) and the smoothness's edge weights ``c_e`` (Charbonnier on the relative
+gradient) are re-estimated between steps (iteratively reweighted least squares), which
+discounts the pixels a constant-velocity model cannot explain (occlusion boundaries).
+``P_e`` is the data precision of the edge's pixels (the diagonal of ``A^T W A``), so
+``lam`` is dimensionless: the weight of the prior relative to one pixel's own data, and
+the smoothing is the same at every brightness (a relative, log-like prior suited to HDR).
+Bright pixels that closed early are sharp already: their rows of ``A`` touch only their
+own neighbourhood, so the data keep them at their hdr-static value.
+
+Coarse to fine: on images larger than ``coarse_min_px`` the first alternation runs on a
+2x2-binned copy of the problem (the velocity halved), whose image and motion start the
+full-resolution iterations.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from .operator import sample_trajectories
+from .problem import Observations, build_operators, grad, grad_adjoint, laplacian, pcg
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class JointOptions:
+    """Tuning of :func:`deblur_joint` (defaults used by ``vet deblur``)."""
+
+    outer: int = 3
+    cg_iters: int = 40
+    final_cg_iters: int = 60
+    lam: float = 0.15
+    edge_rel: float = 0.08
+    motion_alpha: float = 0.05
+    motion_step_max: float = 8.0
+    cauchy_k: float = 4.0
+    update_motion: bool = True
+    use_measure: bool = True
+    step_px: float = 1.0
+    history: list = field(default_factory=list)
+
+
+def _smooth_weights(L: np.ndarray, ref: np.ndarray, prec: np.ndarray, lam: float, edge_rel: float):
+    """Edge weights of the relative smoothness for the x and y differences."""
+    gx, gy = grad(L)
+    rx = np.maximum(ref, np.roll(ref, -1, axis=1))
+    ry = np.maximum(ref, np.roll(ref, -1, axis=0))
+    px = np.minimum(prec, np.roll(prec, -1, axis=1))
+    py = np.minimum(prec, np.roll(prec, -1, axis=0))
+    cx = 1.0 / np.sqrt(1.0 + (gx / (edge_rel * rx)) ** 2)
+    cy = 1.0 / np.sqrt(1.0 + (gy / (edge_rel * ry)) ** 2)
+    sx = lam * px * cx
+    sy = lam * py * cy
+    sx[:, -1] = 0
+    sy[-1] = 0
+    return sx, sy
+
+
+def _diag_AtWA(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
+    A2 = A.multiply(A).tocsr()
+    return np.asarray(A2.T @ w.astype(np.float32), dtype=np.float64)
+
+
+def _mv(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
+    """``A @ x`` in the matrix's float32 (no per-call upcast copy of ``A``)."""
+    return np.asarray(A @ x.astype(np.float32), dtype=np.float64)
+
+
+def _mvt(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
+    return np.asarray(A.T @ x.astype(np.float32), dtype=np.float64)
+
+
+def solve_image(
+    obs: Observations,
+    A: sp.csr_matrix,
+    Ab: sp.csr_matrix | None,
+    w: np.ndarray,
+    wb: np.ndarray | None,
+    L: np.ndarray,
+    ref: np.ndarray,
+    anchor: np.ndarray,
+    anchor_w: np.ndarray,
+    opts: JointOptions,
+    iters: int,
+    expo: np.ndarray,
+    callback: Callable[[int, np.ndarray], None] | None = None,
+) -> np.ndarray:
+    """One weighted least-squares image step (PCG), ``L`` of shape (H W, C)."""
+    h, wd, c = obs.shape
+    n = h * wd
+    diag = _diag_AtWA(A, w)
+    rhs = _mvt(A, w * obs.y)
+    if Ab is not None:
+        diag += _diag_AtWA(Ab, wb)
+        rhs += _mvt(Ab, wb * obs.yb)
+    rhs += anchor_w * anchor
+    # Precision a pixel at the reference level would have from its own exposure alone
+    # (electrons / rate^2): the prior's weight does not shrink where the data are
+    # contaminated by bright light passing by, so the prior decides there.
+    prec = (expo / ref.reshape(n, c)).reshape(h, wd, c)
+    sx, sy = _smooth_weights(L.reshape(h, wd, c), ref, prec, opts.lam, opts.edge_rel)
+    dsm = np.zeros((h, wd, c))
+    dsm += sx
+    dsm[:, 1:] += sx[:, :-1]
+    dsm += sy
+    dsm[1:] += sy[:-1]
+    diag = diag + dsm.reshape(n, c) + anchor_w
+
+    def apply_h(x: np.ndarray) -> np.ndarray:
+        out = _mvt(A, w * _mv(A, x))
+        if Ab is not None:
+            out += _mvt(Ab, wb * _mv(Ab, x))
+        img = x.reshape(h, wd, c)
+        gx, gy = grad(img)
+        out += grad_adjoint(sx * gx, sy * gy).reshape(n, c)
+        out += anchor_w * x
+        return out
+
+    return pcg(apply_h, rhs, L, diag, iters, callback=callback)
+
+
+def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
+    z2 = r * r * w
+    return w / (1.0 + z2 / (k * k))
+
+
+def _motion_normal_terms(
+    obs: Observations,
+    L: np.ndarray,
+    vel: np.ndarray,
+    r: np.ndarray,
+    w: np.ndarray,
+    rb: np.ndarray | None,
+    wb: np.ndarray | None,
+    T: np.ndarray,
+    frame_s: float,
+    leakage: float,
+    n_time: int = 24,
+) -> tuple[np.ndarray, ...]:
+    """Per-pixel Gauss-Newton terms ``(Hxx, Hxy, Hyy, bx, by)`` of the misfit in ``u``.
+
+    The Jacobian of a pixel's model ``sum_s w_s L(x - u t_s)`` w.r.t. its velocity is
+    ``-sum_s w_s t_s grad L(x - u t_s)``, evaluated matrix-free on ``n_time`` samples of
+    the frame (and three per measuring bin); ``b = J^T W r``, ``H = J^T W J``.
+    """
+    h, wd, c = obs.shape
+    img = L.reshape(h, wd, c).astype(np.float32)
+    gys, gxs = np.gradient(img, axis=(0, 1))
+    hxx = np.zeros((h, wd))
+    hxy = np.zeros((h, wd))
+    hyy = np.zeros((h, wd))
+    bx = np.zeros((h, wd))
+    by = np.zeros((h, wd))
+
+    def accumulate(times, weights, rr, ww):
+        jx = np.zeros((h, wd, c))
+        jy = np.zeros((h, wd, c))
+        wt = weights * times.reshape(-1, 1, 1)
+        for ch in range(c):
+            sx = sample_trajectories(gxs[..., ch], vel, times)
+            sy = sample_trajectories(gys[..., ch], vel, times)
+            jx[..., ch] = -(wt * sx).sum(axis=0)
+            jy[..., ch] = -(wt * sy).sum(axis=0)
+        hxx[...] += (ww * jx * jx).sum(axis=2)
+        hxy[...] += (ww * jx * jy).sum(axis=2)
+        hyy[...] += (ww * jy * jy).sum(axis=2)
+        bx[...] += (ww * jx * rr).sum(axis=2)
+        by[...] += (ww * jy * rr).sum(axis=2)
+
+    dt = frame_s / n_time
+    times = (np.arange(n_time) + 0.5) * dt
+    weights = np.where(times.reshape(-1, 1, 1) < T[None], 1.0, leakage) * dt
+    accumulate(times, weights, r.reshape(h, wd, c), w.reshape(h, wd, c))
+    if rb is not None:
+        nb = len(obs.windows_b)
+        rb4 = rb.reshape(nb, h, wd, c)
+        wb4 = wb.reshape(nb, h, wd, c)
+        for b, wins in enumerate(obs.windows_b):
+            win = wins[0]
+            t0, t1, frac = float(win.start), float(win.end), float(win.weight)
+            k = 3
+            tb = t0 + (np.arange(k) + 0.5) * (t1 - t0) / k
+            wgt = np.full((k, 1, 1), frac * (t1 - t0) / k)
+            accumulate(tb, wgt, rb4[b], wb4[b])
+    return hxx, hxy, hyy, bx, by
+
+
+def motion_step_gradient(
+    obs: Observations, L: np.ndarray, vel: np.ndarray, r: np.ndarray, w: np.ndarray,
+    T: np.ndarray, frame_s: float, leakage: float,
+) -> np.ndarray:
+    """Gradient of ``sum w r^2`` (VET image only) w.r.t. the velocity, ``(H, W, 2)``."""
+    _hxx, _hxy, _hyy, bx, by = _motion_normal_terms(obs, L, vel, r, w, None, None, T, frame_s, leakage)
+    return 2 * np.stack([bx, by], axis=-1)
+
+
+def motion_step(
+    obs: Observations,
+    L: np.ndarray,
+    vel: np.ndarray,
+    r: np.ndarray,
+    w: np.ndarray,
+    rb: np.ndarray | None,
+    wb: np.ndarray | None,
+    T: np.ndarray,
+    frame_s: float,
+    leakage: float,
+    opts: JointOptions,
+) -> np.ndarray:
+    """One damped Gauss-Newton step on the velocity field with Laplacian smoothness."""
+    import scipy.sparse.linalg as spla
+
+    h, wd, _c = obs.shape
+    hxx, hxy, hyy, bx, by = _motion_normal_terms(obs, L, vel, r, w, rb, wb, T, frame_s, leakage)
+    tr = hxx + hyy
+    scale = float(np.median(tr[tr > 0])) if np.any(tr > 0) else 1.0
+    alpha = opts.motion_alpha * scale
+    damp = 0.1 * tr + 1e-6 * scale
+    n = h * wd
+
+    def apply(x: np.ndarray) -> np.ndarray:
+        du = x[:n].reshape(h, wd)
+        dv = x[n:].reshape(h, wd)
+        ox = (hxx + damp) * du + hxy * dv - alpha * laplacian(du)
+        oy = hxy * du + (hyy + damp) * dv - alpha * laplacian(dv)
+        return np.concatenate([ox.ravel(), oy.ravel()])
+
+    rhs = -np.concatenate([(bx - alpha * laplacian(vel[..., 0])).ravel(),
+                           (by - alpha * laplacian(vel[..., 1])).ravel()])
+    dg = np.concatenate([(hxx + damp + 4 * alpha).ravel(), (hyy + damp + 4 * alpha).ravel()])
+    op = spla.LinearOperator((2 * n, 2 * n), matvec=apply, dtype=np.float64)
+    pre = spla.LinearOperator((2 * n, 2 * n), matvec=lambda x: x / dg, dtype=np.float64)
+    sol, _ = spla.cg(op, rhs, M=pre, maxiter=60)
+    du = np.stack([sol[:n].reshape(h, wd), sol[n:].reshape(h, wd)], axis=-1)
+    du = np.clip(du, -opts.motion_step_max, opts.motion_step_max)
+    return (vel + du).astype(np.float32)
+
+
+def deblur_joint(
+    obs: Observations,
+    L_init: np.ndarray,
+    velocity: np.ndarray,
+    T: np.ndarray,
+    frame_s: float,
+    subframe_s: float,
+    leakage: float,
+    saturated: np.ndarray,
+    opts: JointOptions | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    truth_cb: Callable[[np.ndarray], float] | None = None,
+    still: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint image and motion estimation (see the module docstring).
+
+    Parameters
+    ----------
+    obs : Observations
+    L_init : ndarray of shape (H, W, C)
+        Start image, electrons/s (the hdr-static estimate); also the anchor of saturated
+        pixels and the reference level of the relative smoothness.
+    velocity : ndarray of shape (H, W, 2)
+        Start motion, px/s.
+    T : ndarray of shape (H, W)
+        Exposure time image, seconds.
+    frame_s, subframe_s, leakage : float
+        Rig timing and LCoS leakage.
+    saturated : ndarray of shape (H, W), bool
+        Pixels whose value hdr-static took from elsewhere (kept near it).
+    opts : JointOptions
+    progress : callable, optional
+        ``progress(done, total)`` after each step.
+    truth_cb : callable, optional
+        Called with the image (H, W, C) after each image step; its return value is
+        logged with the iteration in ``opts.history`` (benchmarks: error vs iterations).
+    still : ndarray of shape (H, W), bool, optional
+        Pixels known to be still (their velocity stays zero through the motion steps).
+
+    Returns
+    -------
+    L0 : ndarray of shape (H, W, C), electrons/s
+    velocity : ndarray of shape (H, W, 2), px/s
+    """
+    import cv2
+
+    opts = opts or JointOptions()
+    h, wd, c = obs.shape
+    n = h * wd
+    ref = np.stack([cv2.GaussianBlur(L_init[..., k].astype(np.float32), (0, 0), 1.0) for k in range(c)], -1)
+    ref = np.maximum(ref, np.percentile(ref, 1) + 1e-6).astype(np.float64)
+    L = L_init.reshape(n, c).astype(np.float64)
+    anchor = L.copy()
+    sat = np.broadcast_to(saturated.reshape(n, 1), (n, c))
+    anchor_w = np.where(sat, 1.0 / (0.01 * np.maximum(anchor, 1e-30)) ** 2, 0.0)
+    vel = velocity.astype(np.float32)
+    w, wb = obs.w, obs.wb
+    # Noise-equivalent floor (as hdr-static's): one electron over the pixel's exposure.
+    expo = np.maximum(T, leakage * frame_s + (1 - leakage) * T).reshape(n, 1)
+    floor = np.broadcast_to(1.0 / expo, (n, c))
+    total = opts.outer + 1
+    iters_done = 0
+    for it in range(total):
+        t0 = time.perf_counter()
+        A, Ab = build_operators(obs, vel, step_px=opts.step_px, subframe_s=subframe_s)
+        tb = time.perf_counter()
+        last = it == total - 1
+        cg_iters = opts.final_cg_iters if last else opts.cg_iters
+
+        def cb(k: int, x: np.ndarray, _base=iters_done) -> None:
+            if truth_cb is not None and (k % 5 == 4):
+                opts.history.append((_base + k + 1, time.perf_counter(), truth_cb(x.reshape(h, wd, c))))
+
+        L = solve_image(obs, A, Ab, w, wb, L, ref, anchor, anchor_w, opts, cg_iters, expo, callback=cb)
+        iters_done += cg_iters
+        L = np.maximum(L, floor)
+        r = _mv(A, L) - obs.y
+        rb = _mv(Ab, L) - obs.yb if Ab is not None else None
+        w = _robust(r, obs.w, opts.cauchy_k)
+        if rb is not None:
+            wb = _robust(rb, obs.wb, opts.cauchy_k)
+        ts = time.perf_counter()
+        if not last and opts.update_motion:
+            vel = motion_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts)
+            if still is not None:
+                vel[still] = 0.0
+        log.debug("deblur: step %d build %.1fs solve %.1fs motion %.1fs", it, tb - t0, ts - tb,
+                  time.perf_counter() - ts)
+        if progress:
+            progress(it + 1, total)
+    return L.reshape(h, wd, c).astype(np.float32), vel

@@ -1,0 +1,166 @@
+"""What both deblur methods share: the data of a capture as electrons with their noise,
+the blur operators for a motion estimate, image-gradient helpers and a multi-column
+preconditioned conjugate-gradient solver.
+
+Units: the unknown image ``L0`` is in electrons per second at the VET sensor (the
+physics' natural unit); :func:`stages.hdr_static.rate_to_output_units` converts the result
+to scene units (simulated captures) or DN/s.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..formats.capture import Capture
+from .operator import Window, blur_matrix, vet_windows
+
+
+@dataclass
+class Observations:
+    """A capture's data in electrons, with inverse-variance weights.
+
+    Attributes
+    ----------
+    y : ndarray of shape (H W, C)
+        VET image minus the dark current, electrons.
+    w : ndarray of shape (H W, C)
+        Inverse variance (Poisson-Gaussian: signal + read + quantisation); 0 where the
+        VET sensor saturated.
+    yb : ndarray of shape (B H W, C) or None
+        Measuring bins minus the dark current, electrons (at the measurement sensor).
+    wb : ndarray of shape (B H W, C) or None
+        Their inverse variances; 0 where a subframe of the bin clipped.
+    windows_b : list of list of Window
+        Exposure windows of each bin (light fraction as weight).
+    """
+
+    shape: tuple[int, int, int]
+    y: np.ndarray
+    w: np.ndarray
+    windows: list[Window]
+    yb: np.ndarray | None
+    wb: np.ndarray | None
+    windows_b: list[list[Window]]
+
+
+def observations(cap: Capture, use_measure: bool = True) -> Observations:
+    """Turn a capture into electrons and noise weights (see :class:`Observations`)."""
+    rig = cap.rig
+    g = rig.gain_dn_per_e
+    h, w, c = cap.I.shape
+    tf = float(cap.meta.get("integration_s", rig.frame_s))
+    q = 1.0 / (12.0 * g * g)
+    e = cap.I.astype(np.float64) / g
+    y = e - rig.dark_current_e_s * tf
+    var = np.maximum(e, 0) + rig.read_noise_e**2 + q
+    wt = 1.0 / var
+    wt[cap.I >= rig.max_dn - 0.5] = 0.0
+    wins = vet_windows(cap.T, tf, rig.subframe_s, rig.n_subframes, rig.leakage)
+    yb = wb = None
+    wins_b: list[list[Window]] = []
+    if use_measure and cap.measure is not None and cap.measure_times is not None and cap.measure.shape[0] > 0:
+        nb = cap.measure.shape[0]
+        dur = np.diff(cap.measure_times, axis=1)[:, 0]
+        n_sub = np.maximum(np.rint(dur / rig.subframe_s), 1)
+        eb = cap.measure.astype(np.float64) / g
+        yb = eb - (rig.dark_current_e_s * dur).reshape(-1, 1, 1, 1)
+        varb = np.maximum(eb, 0) + (n_sub * (rig.read_noise_e**2 + q)).reshape(-1, 1, 1, 1)
+        wb = 1.0 / varb
+        clipped = (cap.measure / n_sub.reshape(-1, 1, 1, 1)) >= rig.max_dn * 0.95
+        wb[np.broadcast_to(clipped.any(axis=3, keepdims=True), wb.shape)] = 0.0
+        yb = yb.reshape(nb * h * w, c)
+        wb = wb.reshape(nb * h * w, c)
+        for b in range(nb):
+            t0, t1 = (float(v) for v in cap.measure_times[b])
+            wins_b.append([Window(t0, t1, float(rig.measure_fraction))])
+    return Observations((h, w, c), y.reshape(h * w, c), wt.reshape(h * w, c), wins, yb, wb, wins_b)
+
+
+def build_operators(
+    obs: Observations, velocity: np.ndarray, step_px: float = 1.0, step_px_bins: float = 1.5,
+    subframe_s: float | None = None,
+) -> tuple[sp.csr_matrix, sp.csr_matrix | None]:
+    """Blur operators of the VET image and of the stacked measuring bins for a motion."""
+    A = blur_matrix(velocity, obs.windows, step_px=step_px, min_dt=subframe_s)
+    Ab = None
+    if obs.yb is not None:
+        Ab = sp.vstack([blur_matrix(velocity, wins, step_px=step_px_bins, min_dt=subframe_s)
+                        for wins in obs.windows_b], format="csr")
+    return A, Ab
+
+
+def grad(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Forward differences of ``(H, W, C)`` (zero at the far border)."""
+    gx = np.zeros_like(img)
+    gy = np.zeros_like(img)
+    gx[:, :-1] = img[:, 1:] - img[:, :-1]
+    gy[:-1] = img[1:] - img[:-1]
+    return gx, gy
+
+
+def grad_adjoint(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """Adjoint of :func:`grad` (minus the divergence)."""
+    out = np.zeros_like(gx)
+    out[:, :-1] -= gx[:, :-1]
+    out[:, 1:] += gx[:, :-1]
+    out[:-1] -= gy[:-1]
+    out[1:] += gy[:-1]
+    return out
+
+
+def laplacian(img: np.ndarray) -> np.ndarray:
+    """5-point Laplacian with replicated borders, ``(H, W, ...)``."""
+    p = np.pad(img, [(1, 1), (1, 1)] + [(0, 0)] * (img.ndim - 2), mode="edge")
+    return p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * img
+
+
+def pcg(
+    apply_h: Callable[[np.ndarray], np.ndarray],
+    b: np.ndarray,
+    x0: np.ndarray,
+    diag: np.ndarray,
+    iters: int,
+    tol: float = 1e-6,
+    callback: Callable[[int, np.ndarray], None] | None = None,
+) -> np.ndarray:
+    """Jacobi-preconditioned conjugate gradients, each column an independent system.
+
+    Parameters
+    ----------
+    apply_h : callable
+        ``x -> H x`` for ``x`` of the shape of ``b`` (H symmetric positive definite per
+        column).
+    b, x0, diag : ndarray of shape (N, C)
+        Right-hand side, start, and the diagonal of H (preconditioner).
+    iters : int
+        Iterations.
+    tol : float
+        Stop when every column's residual norm falls below ``tol`` times its start.
+    """
+    x = x0.copy()
+    r = b - apply_h(x)
+    minv = 1.0 / np.maximum(diag, 1e-300)
+    z = minv * r
+    p = z.copy()
+    rz = np.sum(r * z, axis=0)
+    r0 = np.sqrt(np.sum(r * r, axis=0)) + 1e-300
+    for k in range(iters):
+        hp = apply_h(p)
+        php = np.sum(p * hp, axis=0)
+        alpha = np.where(php > 0, rz / np.where(php > 0, php, 1), 0.0)
+        x += alpha * p
+        r -= alpha * hp
+        if callback is not None:
+            callback(k, x)
+        if np.all(np.sqrt(np.sum(r * r, axis=0)) < tol * r0):
+            break
+        z = minv * r
+        rz_new = np.sum(r * z, axis=0)
+        beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)
+        rz = rz_new
+        p = z + beta * p
+    return x

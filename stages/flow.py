@@ -1,0 +1,226 @@
+"""Motion initialisation from the measuring images, and a colour-wheel picture of motion.
+
+The measuring images of a capture are sums of the measurement sensor's subframes in a few
+time bins (:func:`stages.simulate.measure_bin_edges`). Dark regions are noisy in a single
+subframe, so flow is computed between *bins*, each normalised to a rate by its own
+duration, compressed by a logarithm above its noise floor (so that the huge dynamic range
+of a VET scene fits the 8 bits OpenCV's flow wants and dark regions keep their texture),
+and lightly smoothed. The motion model is a per-pixel constant velocity ``u(x)`` px/s
+(``D(x, t) = u(x) t``, :mod:`stages.motion`'s convention): each flow between two bins is
+divided by the time between the bins' centres, several bin pairs are combined by a
+per-pixel median, and the result is smoothed with weights from each pixel's
+signal-to-noise ratio (normalised convolution), which fills flat and noisy areas from
+their textured, well-lit neighbours.
+
+References
+----------
+G. Farnebäck, "Two-frame motion estimation based on polynomial expansion", SCIA 2003.
+T. Kroeger, R. Timofte, D. Dai, L. Van Gool, "Fast optical flow using dense inverse
+search", ECCV 2016.
+S. Baker, D. Scharstein, J. P. Lewis, S. Roth, M. J. Black, R. Szeliski, "A database and
+evaluation methodology for optical flow", IJCV 92, 2011 (the colour wheel).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .formats.capture import Capture
+from .formats.layered import Layered, write_layered
+
+FLOW_METHODS = ("farneback", "dis")
+
+
+def measure_rates(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Measuring bins as rates at the VET sensor, with noise and validity.
+
+    Returns
+    -------
+    rate : ndarray of shape (B, H, W, C), float32
+        Electrons per second (dark current removed), on the VET sensor's scale.
+    sigma : ndarray of shape (B, H, W, C), float32
+        Standard deviation of ``rate`` (shot, read and quantisation noise).
+    valid : ndarray of shape (B, H, W), bool
+        False where some subframe of the bin clipped.
+    """
+    if cap.measure is None or cap.measure_times is None:
+        from .errors import InputError
+
+        raise InputError("capture has no measuring images; motion cannot be estimated from it")
+    rig = cap.rig
+    g = rig.gain_dn_per_e
+    dur = np.diff(cap.measure_times, axis=1)[:, 0]
+    n_sub = np.maximum(np.rint(dur / rig.subframe_s), 1)
+    shape = (-1, 1, 1, 1)
+    e = cap.measure / np.float32(g) - (rig.dark_current_e_s * dur).reshape(shape).astype(np.float32)
+    read_var = (n_sub * (rig.read_noise_e**2 + 1.0 / (12 * g * g))).reshape(shape)
+    var = np.maximum(e + (rig.dark_current_e_s * dur).reshape(shape), 0) + read_var
+    scale = (dur * rig.measure_fraction).reshape(shape)
+    rate = (e / scale).astype(np.float32)
+    sigma = (np.sqrt(var) / scale).astype(np.float32)
+    per_sub = cap.measure / n_sub.reshape(shape).astype(np.float32)
+    valid = (per_sub < np.float32(rig.max_dn * 0.95)).all(axis=3)
+    return rate, sigma, valid
+
+
+def _equalise(values: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """Map values through a common equalising table (quantiles ``levels``) to 8 bits."""
+    v = np.interp(values, levels, np.linspace(0.0, 255.0, len(levels)))
+    return np.clip(v, 0, 255).astype(np.uint8)
+
+
+def _flow_pair(a: np.ndarray, b: np.ndarray, method: str) -> np.ndarray:
+    import cv2
+
+    if method == "farneback":
+        return cv2.calcOpticalFlowFarneback(a, b, None, pyr_scale=0.5, levels=5, winsize=21,
+                                            iterations=5, poly_n=7, poly_sigma=1.5, flags=0)
+    if method == "dis":
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        return dis.calc(a, b, None)
+    raise ValueError(f"unknown flow method {method!r}; choose from {', '.join(FLOW_METHODS)}")
+
+
+def estimate_velocity(
+    cap: Capture,
+    method: str = "farneback",
+    gaps: tuple[int, ...] = (2, 4),
+    smooth_px: float = 6.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel constant velocity from optical flow between measuring bins.
+
+    Parameters
+    ----------
+    cap : Capture
+        A VET capture with measuring images (at least two bins).
+    method : {'farneback', 'dis'}
+        Farnebäck (the published choice) or dense inverse search.
+    gaps : tuple of int
+        Bin-index gaps of the pairs ``(b, b + gap)`` whose flows are combined; gaps too
+        large for the number of bins are skipped.
+    smooth_px : float
+        Standard deviation (pixels) of the confidence-weighted smoothing of the result.
+
+    Returns
+    -------
+    velocity : ndarray of shape (H, W, 2), float32
+        ``(u, v)`` in px/s.
+    confidence : ndarray of shape (H, W), float32
+        Per-pixel weight in [0, 1] (signal-to-noise of the bins, and agreement of the
+        pairs).
+    """
+    import cv2
+
+    rate, sigma, valid = measure_rates(cap)
+    nb = rate.shape[0]
+    h, w = rate.shape[1:3]
+    if nb < 2:
+        from .errors import InputError
+
+        raise InputError("capture has fewer than two measuring bins; motion cannot be estimated")
+    lum = rate.mean(axis=3)
+    noise = sigma.mean(axis=3) / np.sqrt(rate.shape[3])
+    # Saturated bins carry a lower bound: take the rate of the VET image's first bin there.
+    floor = np.median(noise, axis=0)
+    lv = np.log(np.maximum(lum, 0) + floor).astype(np.float32)
+    # One equalising table for all bins (so brightness constancy holds between them):
+    # every level of the log-rate gets its share of the 8 bits, dark texture included.
+    sample = lv[:, ::2, ::2].ravel()
+    levels = np.unique(np.quantile(sample, np.linspace(0, 1, 257)))
+    if len(levels) < 2:
+        levels = np.array([float(sample.min()), float(sample.min()) + 1.0])
+    frames = []
+    for b in range(nb):
+        img = _equalise(cv2.GaussianBlur(lv[b], (0, 0), 1.0), levels)
+        frames.append(img)
+    centres = cap.measure_times.mean(axis=1)
+    pairs = [(b, b + gap) for gap in gaps for b in range(nb - gap)]
+    if not pairs:
+        pairs = [(b, b + 1) for b in range(nb - 1)]
+    vels = np.empty((len(pairs), h, w, 2), np.float32)
+    for i, (p, q) in enumerate(pairs):
+        f = _flow_pair(frames[p], frames[q], method)
+        vels[i] = f / np.float32(centres[q] - centres[p])
+    vel = np.median(vels, axis=0)
+    spread = np.median(np.abs(vels - vel[None]), axis=0).max(axis=2)
+    snr = np.median(np.maximum(lum, 0) / np.maximum(noise, 1e-12), axis=0)
+    # Confidence: well above the noise, textured, and the pairs agree.
+    gx = cv2.Sobel(lv.mean(axis=0).astype(np.float32), cv2.CV_32F, 1, 0)
+    gy = cv2.Sobel(lv.mean(axis=0).astype(np.float32), cv2.CV_32F, 0, 1)
+    texture = np.hypot(gx, gy)
+    conf = (snr / (snr + 5.0)) * (texture / (texture + 0.05)) / (1.0 + spread / 2.0)
+    conf *= valid.all(axis=0)
+    conf = conf.astype(np.float32)
+    if smooth_px > 0:
+        num = np.stack([cv2.GaussianBlur(vel[..., k] * conf, (0, 0), smooth_px) for k in range(2)], -1)
+        den = cv2.GaussianBlur(conf, (0, 0), smooth_px)[..., None]
+        # Where no confident pixel is near, fall back to the global median velocity.
+        glob = np.median(vel[conf > np.percentile(conf, 50)], axis=0) if conf.max() > 0 else np.zeros(2)
+        vel = np.where(den > 1e-3, num / np.maximum(den, 1e-12), glob[None, None, :]).astype(np.float32)
+    return vel.astype(np.float32), np.clip(conf, 0, 1)
+
+
+def write_motion(path: str, velocity: np.ndarray, meta: dict | None = None) -> None:
+    """Write a velocity field as a layered file (layer ``motion``, channels u, v; px/s)."""
+    data = Layered()
+    data.add("motion", velocity.astype(np.float32), ["u", "v"])
+    m = dict(meta or {})
+    m.update(kind="motion", units="px/s", model="constant velocity, D(x, t) = u(x) t")
+    data.meta = m
+    write_layered(path, data)
+
+
+def flow_to_color(velocity: np.ndarray, max_speed: float | None = None) -> np.ndarray:
+    """Colour-wheel picture of a velocity field (hue: direction, saturation: speed).
+
+    Parameters
+    ----------
+    velocity : ndarray of shape (H, W, 2)
+    max_speed : float, optional
+        Speed shown fully saturated; default the 99th percentile of the field's speed.
+
+    Returns
+    -------
+    ndarray of shape (H, W, 3), uint8 RGB. White is still; hue follows the direction
+    (Baker et al. 2011 convention: right is red, down is blue-green... by angle).
+    """
+    import cv2
+
+    u = velocity[..., 0].astype(np.float32)
+    v = velocity[..., 1].astype(np.float32)
+    mag = np.hypot(u, v)
+    if max_speed is None:
+        max_speed = float(np.percentile(mag, 99)) if mag.size else 1.0
+    max_speed = max(max_speed, 1e-6)
+    ang = (np.degrees(np.arctan2(v, u)) % 360.0) / 2.0  # OpenCV hue is 0..180
+    sat = np.clip(mag / max_speed, 0, 1) * 255
+    hsv = np.stack([ang, sat, np.full_like(ang, 255)], axis=-1).astype(np.uint8)
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+
+
+def moving_mask(cap: Capture, smooth_px: float = 4.0, threshold: float = 1.5) -> np.ndarray:
+    """Pixels whose measuring bins are *not* consistent with a still scene.
+
+    For a still pixel every bin measures the same rate, so the chi-square of the bins'
+    rates about their inverse-variance-weighted mean has mean ``B - 1``; motion across
+    texture raises it. The per-pixel statistic is smoothed over ``smooth_px`` (Gaussian)
+    and compared with ``threshold (B - 1)``; the mask is dilated by a few pixels.
+
+    Returns
+    -------
+    ndarray of shape (H, W), bool
+    """
+    import cv2
+
+    rate, sigma, valid = measure_rates(cap)
+    nb = rate.shape[0]
+    if nb < 2:
+        return np.zeros(cap.shape, bool)
+    wgt = valid[..., None] / np.maximum(sigma, 1e-12) ** 2
+    mean = (wgt * rate).sum(axis=0) / np.maximum(wgt.sum(axis=0), 1e-30)
+    chi2 = (wgt * (rate - mean[None]) ** 2).sum(axis=0).mean(axis=2)
+    dof = np.maximum(valid.sum(axis=0) - 1, 1)
+    stat = cv2.GaussianBlur((chi2 / dof).astype(np.float32), (0, 0), smooth_px)
+    moving = (stat > threshold).astype(np.uint8)
+    moving = cv2.dilate(moving, np.ones((5, 5), np.uint8))
+    return moving.astype(bool)
