@@ -164,7 +164,7 @@ def capture_frame(
                 if measure is not None:
                     measure[bin_of[kk]] += data
                 if raw is not None:
-                    raw[kk] = np.clip(np.rint(data), -32768, 32767).astype(np.int16)
+                    raw[kk] = data  # integer DN in [-black level, 4095]: exact in int16
                 stamps.append(frame.timestamp_s)
                 n_done = kk + 1
                 if progress:

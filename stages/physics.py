@@ -47,6 +47,22 @@ def expose(lam_e: np.ndarray, rig: RigParams, rng: np.random.Generator) -> np.nd
     return e
 
 
+def brightest_channel(frame: np.ndarray) -> np.ndarray:
+    """Per-pixel maximum over channels of (H, W, C) (or (H, W) as is).
+
+    Elementwise ``np.maximum`` over channel planes: ``frame.max(axis=2)`` reduces a
+    length-3 contiguous axis about 20x slower (76 ms against 4 ms at 1280x1024).
+    """
+    if frame.ndim == 2:
+        return frame
+    if frame.shape[2] == 1:
+        return frame[:, :, 0]
+    out = np.maximum(frame[:, :, 0], frame[:, :, 1])
+    for c in range(2, frame.shape[2]):
+        np.maximum(out, frame[:, :, c], out=out)
+    return out
+
+
 class CellMap:
     """Which LCoS cell governs each sensor pixel, through the calibration homography.
 
@@ -140,8 +156,7 @@ class ClosureController:
 
     def step(self, frame_dn: np.ndarray, k: int) -> np.ndarray:
         """Add subframe ``k``; return indices of cells that crossed the threshold."""
-        brightest = frame_dn.max(axis=2) if frame_dn.ndim == 3 else frame_dn
-        np.add(self.sum_dn, brightest, out=self.sum_dn, casting="unsafe")
+        np.add(self.sum_dn, brightest_channel(frame_dn), out=self.sum_dn, casting="unsafe")
         np.greater_equal(self.sum_dn, self.threshold_dn, out=self._crossed)
         if not self._crossed.any():
             return np.empty(0, np.int64)

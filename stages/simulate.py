@@ -37,7 +37,7 @@ import numpy as np
 
 from .formats.capture import Capture, provenance_entry
 from .motion import Motion
-from .physics import CellMap, ClosureController, expose, radiance_scale
+from .physics import CellMap, ClosureController, brightest_channel, expose, radiance_scale
 from .rig import RigParams
 from .scenes import Scene, luminance
 
@@ -214,7 +214,7 @@ def attenuation_from_previous_frame(
     prev = np.zeros(radiance.shape[:2], np.float32)
     for i in range(samples):
         t = -tf + (i + 0.5) * tf / samples
-        prev += motion.render(radiance, t).max(axis=2)
+        prev += brightest_channel(motion.render(radiance, t))
     rate = prev / samples * np.float32(scale)
     want = np.where(rate > 0, rig.threshold_e / np.maximum(rate * tf, 1e-30), 1.0)
     cell_a = cellmap.cell_min(want.astype(np.float32))
