@@ -66,10 +66,12 @@ def test_link_faults_are_survived_and_t_equals_the_device_record(tmp_path):
 
 
 def test_slow_link_makes_late_closures_that_t_records(tmp_path):
-    # At 96x80 the deltas are small; 200 kbit/s congests the link as 3 Mbit/s does at 1280x1024.
-    cap, record, host_applied, cellmap = _capture(tmp_path, link_bps=2e5)
+    # At 96x80 the deltas are small. 20 kbit/s carries 15 bytes per subframe while the
+    # smallest CLOSE_DELTA frame is over 20 bytes, so closures must land late whatever
+    # the machine's load (3 Mbit/s at 1280x1024 is measured by `make bench`).
+    cap, record, host_applied, cellmap = _capture(tmp_path, link_bps=2e4)
     late = cap.meta["capture_stats"]["late_closures"]
-    assert late["count"] > 0 and late["max"] >= 2
+    assert late["count"] > 0 and late["max"] >= 1
     np.testing.assert_array_equal(cap.T, _t_from_record(record, cellmap, cap.rig))
     err = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, cap.rig.frame_s)
     assert err["all"]["median"] < 0.08  # honest T keeps the static inversion right
@@ -117,3 +119,22 @@ def test_hardware_rig_with_no_controller_fails_with_a_device_error(tmp_path):
                    '[vet_camera]\nsource = "/dev/video98"\n')
     with pytest.raises(DeviceError):
         open_rig(str(rig))
+
+
+def test_calibration_feeds_capture_and_size_mismatch_is_refused(tmp_path):
+    cal = tmp_path / "cal.npz"
+    res = run_vet("calibrate", "--rig", "sim", "--size", "96x80", "--lcos", "64x40", "--true-homography",
+                  "example", "-o", cal)
+    assert res.returncode == 0, res.stderr
+    res = run_vet("capture", "--rig", "sim", "--size", "96x80", "--calibration", cal, "-o", tmp_path / "c")
+    assert res.returncode == 0, res.stderr
+    cap = read_capture(tmp_path / "c")
+    assert cap.rig.lcos_cells == (64, 40) and cap.rig.homography != RigParamsDefault(96, 80).homography
+    res = run_vet("capture", "--rig", "sim", "--size", "128x96", "--calibration", cal, "-o", tmp_path / "d")
+    assert res.returncode == 1 and b"made for a 96x80 sensor" in res.stderr
+
+
+def RigParamsDefault(w, h):
+    from stages.rig import RigParams
+
+    return RigParams(sensor_size=(w, h), lcos_cells=(64, 40))

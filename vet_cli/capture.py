@@ -53,14 +53,21 @@ def cli(rig_spec: str, output: str, calibration: str | None, scene: str, motion:
     from stages.scenes import parse_size
 
     overrides = rig_overrides(kwargs)
+    cal = None
     if calibration:
-        from stages.calibrate import calibration_overrides
+        from stages.calibrate import calibration_changes, read_calibration
 
-        overrides.update(calibration_overrides(calibration))
+        cal = read_calibration(calibration)
+        overrides.update(calibration_changes(cal))
     sim = SimOptions(scene=scene, motion=motion, size=parse_size(size), seed=seed, link_bps=link_bps,
                      link_fault_rate=link_fault_rate, disconnect_at_subframe=disconnect_at,
                      overrides=overrides)
     with open_rig(rig_spec, sim) as rig:
+        if cal is not None and tuple(cal.sensor_size) != tuple(rig.params.sensor_size):
+            from stages.errors import InputError
+
+            raise InputError(f"{calibration}: made for a {cal.sensor_size[0]}x{cal.sensor_size[1]} sensor, "
+                             f"but the rig's is {rig.params.sensor_size[0]}x{rig.params.sensor_size[1]}")
         log.debug("capture: rig %s, sensor %dx%d", rig.name, *rig.params.sensor_size)
         progress = Progress("capture")
         cap = capture_frame(rig, output, measure_bins=measure_bins, raw_stream=raw_stream, fmt=fmt,
