@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FormatError, InputError
+from .errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -166,33 +166,16 @@ BUILTIN_SCENES = {
 def read_linear_image(path: str | Path) -> tuple[np.ndarray, list[str]]:
     """Read any linear image OpenImageIO reads at full resolution (level 0 of mip-maps,
     tiles handled by OIIO), choosing colour channels by name and ignoring alpha."""
-    import OpenImageIO as oiio
-
-    from .formats.io import check_size
+    from .formats.layered import read_oiio
 
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file")
     if p.is_dir():
         raise InputError(f"{p}: is a folder, not an image")
-    inp = oiio.ImageInput.open(str(p))
-    if inp is None:
-        msg = oiio.geterror().strip().splitlines()
-        raise FormatError(f"{p}: not a readable image ({msg[-1] if msg else 'unknown format'})")
-    try:
-        spec = inp.spec()
-        w, h, nch = spec.width, spec.height, spec.nchannels
-        if w <= 0 or h <= 0 or nch <= 0:
-            raise FormatError(f"{p}: image has no pixels")
-        check_size(int(w) * int(h) * int(nch) * 4, str(p))
-        pixels = inp.read_image(0, 0, 0, nch, "float")
-        if pixels is None:
-            msg = inp.geterror().strip().splitlines()
-            raise FormatError(f"{p}: pixel data unreadable ({msg[-1] if msg else 'truncated?'})")
-        names = [n.split(".")[-1].upper() for n in spec.channelnames]
-    finally:
-        inp.close()
-    pixels = np.asarray(pixels, dtype=np.float32).reshape(h, w, nch)
+    pixels, names, _ = read_oiio(p, str(p))
+    names = [n.split(".")[-1].upper() for n in names]
+    nch = pixels.shape[2]
     if all(c in names for c in ("R", "G", "B")):
         idx = [names.index(c) for c in ("R", "G", "B")]
         return np.ascontiguousarray(pixels[:, :, idx]), ["R", "G", "B"]

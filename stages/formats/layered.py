@@ -101,28 +101,38 @@ def write_exr(path: Path, data: Layered, compression: str = "zip") -> None:
         out.close()
 
 
-def read_exr(path: Path, what: str | None = None) -> Layered:
+def read_oiio(path: str | Path, what: str, attrs: tuple[str, ...] = ()) -> tuple[np.ndarray, list[str], dict[str, str]]:
+    """Read any image OpenImageIO reads at full resolution (subimage 0, MIP level 0;
+    tiles handled by OIIO), checking the declared size before allocating.
+
+    Returns ``(pixels (H, W, C) float32, channel names, {attr: string value})``.
+    """
     oiio = _oiio()
-    what = what or str(path)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         msg = oiio.geterror().strip().splitlines()
-        raise FormatError(f"{what}: not a readable EXR ({msg[-1] if msg else 'unknown error'})")
+        raise FormatError(f"{what}: not a readable image ({msg[-1] if msg else 'unknown format'})")
     try:
         spec = inp.spec()
         w, h, nch = spec.width, spec.height, spec.nchannels
-        check_size(int(w) * int(h) * int(nch) * 4, what)
         if w <= 0 or h <= 0 or nch <= 0:
-            raise FormatError(f"{what}: EXR has no pixels")
+            raise FormatError(f"{what}: image has no pixels")
+        check_size(int(w) * int(h) * int(nch) * 4, what)
         pixels = inp.read_image(0, 0, 0, nch, "float")
         if pixels is None:
             msg = inp.geterror().strip().splitlines()
-            raise FormatError(f"{what}: EXR pixel data unreadable ({msg[-1] if msg else 'truncated?'})")
-        meta_json = spec.get_string_attribute(META_ATTR, "")
+            raise FormatError(f"{what}: pixel data unreadable ({msg[-1] if msg else 'truncated?'})")
+        values = {a: spec.get_string_attribute(a, "") for a in attrs}
         names = list(spec.channelnames)
     finally:
         inp.close()
-    pixels = np.asarray(pixels, dtype=np.float32).reshape(h, w, nch)
+    return np.asarray(pixels, dtype=np.float32).reshape(h, w, nch), names, values
+
+
+def read_exr(path: Path, what: str | None = None) -> Layered:
+    what = what or str(path)
+    pixels, names, attrs = read_oiio(path, what, (META_ATTR,))
+    meta_json = attrs[META_ATTR]
     meta = _parse_meta(meta_json, what) if meta_json else {}
     data = Layered(meta=meta)
     grouped: dict[str, list[tuple[str, int]]] = {}
