@@ -41,7 +41,9 @@ def _make_capture(path: str, seed: int) -> None:
     scene = load_scene(SCENE, SIZE)
     rig = RigParams(sensor_size=SIZE)
     # Seeded so the cache is reproducible; no measuring images, to save time.
-    write_capture(path, simulate(scene, parse_motion("none"), rig, seed=seed, measure_bins=0)["vet"])
+    write_capture(
+        path, simulate(scene, parse_motion("none"), rig, seed=seed, measure_bins=0)["vet"]
+    )
 
 
 def generate_captures(folder: Path = CACHE / "captures") -> tuple[Path, float, int]:
@@ -49,12 +51,13 @@ def generate_captures(folder: Path = CACHE / "captures") -> tuple[Path, float, i
     from stages.batch import probe_kind
 
     folder.mkdir(parents=True, exist_ok=True)
-    missing = [i for i in range(N_CAPTURES)
-               if probe_kind(folder / f"cap{i:02d}.exr") != "capture"]
+    missing = [i for i in range(N_CAPTURES) if probe_kind(folder / f"cap{i:02d}.exr") != "capture"]
     t0 = time.perf_counter()
     if missing:
         with ProcessPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
-            list(pool.map(_make_capture, [str(folder / f"cap{i:02d}.exr") for i in missing], missing))
+            list(
+                pool.map(_make_capture, [str(folder / f"cap{i:02d}.exr") for i in missing], missing)
+            )
     return folder, time.perf_counter() - t0, len(missing)
 
 
@@ -67,8 +70,14 @@ def _throughput(captures: Path, n_workers: int) -> dict[str, float]:
 
     best: dict[str, float] = {}
     t0 = time.perf_counter()
-    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None, env=dict(WORKER_ENV)) as cluster:
+    with LocalCluster(
+        n_workers=n_workers,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+        env=dict(WORKER_ENV),
+    ) as cluster:
         startup = time.perf_counter() - t0
         for _ in range(REPEATS):
             out = CACHE / f"out-{n_workers}w"
@@ -76,24 +85,42 @@ def _throughput(captures: Path, n_workers: int) -> dict[str, float]:
             report = run_batch(captures, out, jobs=n_workers, scheduler=cluster.scheduler_address)
             assert report.exit_status == 0 and report.summary["counts"]["done"] == N_CAPTURES
             process_s = report.summary["timing_s"]["process"]
+            task_s = [o["elapsed_s"] for o in report.summary["captures"]]
+            cpu_s = [o["cpu_s"] for o in report.summary["captures"]]
             if not best or process_s < best["process_s"]:
-                best = {"process_s": process_s, "captures_per_s": N_CAPTURES / process_s,
-                        "cluster_start_s": startup}
+                best = {
+                    "process_s": process_s,
+                    "captures_per_s": N_CAPTURES / process_s,
+                    "cluster_start_s": startup,
+                    "task_mean_s": sum(task_s) / len(task_s),
+                    "task_cpu_mean_s": sum(cpu_s) / len(cpu_s),
+                    "load_average": os.getloadavg()[0],
+                }
     return best
 
 
 def _cli(*args: str) -> tuple[float, int]:
     t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "vet_cli", "-q", *args], cwd=REPO,
-                       env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "vet_cli", "-q", *args],
+        cwd=REPO,
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+        capture_output=True,
+    )
     return time.perf_counter() - t0, r.returncode
 
 
 def measure() -> dict[str, Any]:
     """Run the benchmark; return its figures."""
     captures, gen_s, made = generate_captures()
-    fig: dict[str, Any] = {"captures": N_CAPTURES, "size": f"{SIZE[0]}x{SIZE[1]}", "scene": SCENE,
-                           "generated": made, "generate_s": round(gen_s, 1), "cpus": os.cpu_count()}
+    fig: dict[str, Any] = {
+        "captures": N_CAPTURES,
+        "size": f"{SIZE[0]}x{SIZE[1]}",
+        "scene": SCENE,
+        "generated": made,
+        "generate_s": round(gen_s, 1),
+        "cpus": os.cpu_count(),
+    }
     one = _throughput(captures, 1)
     two = _throughput(captures, 2)
     fig["dask_1_worker"] = {k: round(v, 3) for k, v in one.items()}
@@ -114,16 +141,29 @@ def measure() -> dict[str, Any]:
 def main() -> None:
     """Print the figures (and save them to bench_out/batch/figures.json)."""
     fig = measure()
-    print(f"bench_batch: {fig['captures']} captures {fig['size']} ({fig['scene']}), {fig['cpus']} CPUs")
-    print(f"  generate captures:        {fig['generate_s']:.1f} s for {fig['generated']} new (cached in {CACHE})")
+    print(
+        f"bench_batch: {fig['captures']} captures {fig['size']} ({fig['scene']}), {fig['cpus']} CPUs"
+    )
+    print(
+        f"  generate captures:        {fig['generate_s']:.1f} s for {fig['generated']} new (cached in {CACHE})"
+    )
     for label, key in (("1 worker", "dask_1_worker"), ("2 workers", "dask_2_workers")):
         d = fig[key]
-        print(f"  dask {label:<9}:          {d['process_s']:.2f} s  = {d['captures_per_s']:.2f} captures/s "
-              f"(cluster start {d['cluster_start_s']:.1f} s, not counted)")
+        print(
+            f"  dask {label:<9}:          {d['process_s']:.2f} s  = {d['captures_per_s']:.2f} captures/s "
+            f"(one capture {d['task_mean_s']:.2f} s wall, {d['task_cpu_mean_s']:.2f} s CPU; cluster start {d['cluster_start_s']:.1f} s, "
+            f"not counted; load average {d['load_average']:.1f})"
+        )
     print(f"  throughput 2 vs 1 worker: {fig['speedup_2_vs_1']:.2f}x  [target >= 1.7x]")
-    print(f"  vet batch -j 2 (CLI):     {fig['cli_j2_s']:.2f} s end to end, exit {fig['cli_j2_exit']}")
-    print(f"  vet batch -j 1 (CLI):     {fig['cli_j1_s']:.2f} s end to end, in-process, exit {fig['cli_j1_exit']}")
-    print(f"  rerun, nothing to do:     {fig['cli_rerun_s']:.2f} s, exit {fig['cli_rerun_exit']}  [target < 3 s]")
+    print(
+        f"  vet batch -j 2 (CLI):     {fig['cli_j2_s']:.2f} s end to end, exit {fig['cli_j2_exit']}"
+    )
+    print(
+        f"  vet batch -j 1 (CLI):     {fig['cli_j1_s']:.2f} s end to end, in-process, exit {fig['cli_j1_exit']}"
+    )
+    print(
+        f"  rerun, nothing to do:     {fig['cli_rerun_s']:.2f} s, exit {fig['cli_rerun_exit']}  [target < 3 s]"
+    )
     CACHE.mkdir(parents=True, exist_ok=True)
     (CACHE / "figures.json").write_text(json.dumps(fig, indent=1))
 
