@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench lint format sample-data clean
+.PHONY: demo test test-slow bench lint format sample-data sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -44,5 +44,9 @@ format: $(STAMP)
 sample-data: $(STAMP)
 	$(BIN)/python -m stages.sample_data sample_data
 
+# The shipped Make recipes (make/vet.mk) on the sample captures; try `make -j2 sample-hdr`.
+sample-hdr: $(STAMP)
+	$(MAKE) -f make/vet.mk VET=$(abspath $(VET)) CAPTURES=sample_data/captures OUT=sample_out vet-all
+
 clean:
-	rm -rf $(DEMO_DIR) .pytest_cache
+	rm -rf $(DEMO_DIR) sample_out .pytest_cache

@@ -3,9 +3,9 @@
 Writes a small scene and small captures made by vet's own generators (same pixels for
 the same seed), used by the README examples and the Make recipes:
 
-- ``interior.exr``: the builtin lamp-lit interior, 320x256, linear RGB scene units;
-- ``interior_still.exr``: a VET capture of it, still, seed 1;
-- ``interior_pan.exr``: a VET capture panning at 30 px/s, seed 1, 4 measuring bins;
+- ``scenes/interior.exr``: the builtin lamp-lit interior, 320x256, linear RGB scene units;
+- ``captures/interior_still.exr``: a VET capture of it, still, seed 1, 4 measuring bins;
+- ``captures/interior_pan.exr``: a VET capture panning at 30 px/s, seed 1, 4 measuring bins;
 - ``interior_hdr.png`` and ``interior_T.png``: the README's pictures.
 """
 
@@ -29,19 +29,20 @@ def generate(folder: Path) -> list[Path]:
     from .simulate import simulate
     from .tonemap import tonemap
 
-    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "scenes").mkdir(parents=True, exist_ok=True)
+    (folder / "captures").mkdir(exist_ok=True)
     scene = load_scene("builtin:interior", SIZE)
     rig = RigParams(sensor_size=SIZE)
     written = []
-    scene_file = folder / "interior.exr"
+    scene_file = folder / "scenes" / "interior.exr"
     write_hdr(scene_file, HDRImage(scene.radiance, scene.channels, {"units": "scene", "scene": scene.source}))
     written.append(scene_file)
     for name, motion in (("interior_still", "none"), ("interior_pan", "translate:30,0")):
         cap = simulate(scene, parse_motion(motion), rig, seed=SEED, measure_bins=4)["vet"]
         cap.meta["provenance"][0]["command"] = "python -m stages.sample_data"
         cap.meta["provenance"][0]["time"] = ""
-        write_capture(folder / f"{name}.exr", cap)
-        written.append(folder / f"{name}.exr")
+        write_capture(folder / "captures" / f"{name}.exr", cap)
+        written.append(folder / "captures" / f"{name}.exr")
         if motion == "none":
             img = hdr_static(cap)
             write_display_image(folder / "interior_hdr.png", tonemap(img.radiance, "log"))

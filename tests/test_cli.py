@@ -177,10 +177,10 @@ def test_sample_data_is_what_the_generator_makes(tmp_path):
     from stages.formats import read_capture
     from stages.sample_data import generate
 
-    committed = Path(__file__).parent.parent / "sample_data" / "interior_pan.exr"
+    committed = Path(__file__).parent.parent / "sample_data" / "captures" / "interior_pan.exr"
     if not committed.exists():
         pytest.skip("sample_data not present")
     generate(tmp_path)
-    a, b = read_capture(committed), read_capture(tmp_path / "interior_pan.exr")
+    a, b = read_capture(committed), read_capture(tmp_path / "captures" / "interior_pan.exr")
     np.testing.assert_array_equal(a.I, b.I)
     np.testing.assert_array_equal(a.T, b.T)
