@@ -113,8 +113,19 @@ class OpenCVCamera(Camera):
                 raise InputError(f"{src}: folder holds no PNG or TIFF frames")
             self._files = files
             return
+        if isinstance(src, str) and "%" in src:
+            # An image sequence: OpenCV's CAP_IMAGES backend would convert it to 8 bits,
+            # so expand the pattern and read each frame unchanged (16-bit preserved).
+            first = 0 if os.path.exists(src % 0) else 1
+            files = []
+            while os.path.exists(src % (first + len(files))):
+                files.append(src % (first + len(files)))
+            if not files:
+                raise InputError(f"{src}: no frames match this pattern")
+            self._files = files
+            return
         is_device = isinstance(src, int) or (isinstance(src, str) and src.startswith("/dev/video"))
-        if isinstance(src, str) and not is_device and "%" not in src and not Path(src).exists():
+        if isinstance(src, str) and not is_device and not Path(src).exists():
             raise InputError(f"{src}: no such video file or device")
         self._cap = cv2.VideoCapture(src, cv2.CAP_V4L2) if is_device else cv2.VideoCapture(src)
         if not self._cap.isOpened():
