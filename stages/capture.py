@@ -60,7 +60,9 @@ class CaptureLog:
         with atomic_output(folder / "capture.log") as tmp:
             tmp.write_text("\n".join(self.lines) + "\n")
         with atomic_output(folder / "capture.json") as tmp:
-            tmp.write_text(json.dumps(self.stats, indent=2, sort_keys=True, default=_jsonable) + "\n")
+            tmp.write_text(
+                json.dumps(self.stats, indent=2, sort_keys=True, default=_jsonable) + "\n"
+            )
 
 
 def _jsonable(o: Any) -> Any:
@@ -117,10 +119,14 @@ def capture_frame(
     n_done = 0
     try:
         info = rig.lcos.info()
-        clog.info("LCoS: %s, %dx%d cells, protocol %s", info.firmware, *info.cells, info.protocol_version)
+        clog.info(
+            "LCoS: %s, %dx%d cells, protocol %s", info.firmware, *info.cells, info.protocol_version
+        )
         if tuple(info.cells) != tuple(params.lcos_cells):
-            raise DeviceError(f"LCoS reports {info.cells[0]}x{info.cells[1]} cells but the rig says "
-                              f"{params.lcos_cells[0]}x{params.lcos_cells[1]}")
+            raise DeviceError(
+                f"LCoS reports {info.cells[0]}x{info.cells[1]} cells but the rig says "
+                f"{params.lcos_cells[0]}x{params.lcos_cells[1]}"
+            )
         w, h = params.sensor_size
         k_sub, tau = params.n_subframes, params.subframe_s
         cellmap = CellMap.for_rig(params, (h, w))
@@ -134,9 +140,15 @@ def capture_frame(
         nch = len(rig.channels)
         edges = measure_bin_edges(k_sub, measure_bins) if measure_bins > 0 else None
         measure = np.zeros((len(edges) - 1, h, w, nch), np.float32) if edges is not None else None
-        bin_of = np.searchsorted(edges, np.arange(k_sub), side="right") - 1 if edges is not None else None
+        bin_of = (
+            np.searchsorted(edges, np.arange(k_sub), side="right") - 1
+            if edges is not None
+            else None
+        )
         if raw_stream:
-            raw = np.lib.format.open_memmap(raw_tmp, mode="w+", dtype=np.int16, shape=(k_sub, h, w, nch))
+            raw = np.lib.format.open_memmap(
+                raw_tmp, mode="w+", dtype=np.int16, shape=(k_sub, h, w, nch)
+            )
         stamps: list[float] = []
         dropped: list[int] = []
         step_ms: list[float] = []
@@ -146,12 +158,18 @@ def capture_frame(
             frame = rig.measurement.grab()
             data = frame.data
             if data.shape != (h, w, nch):
-                raise DeviceError(f"measurement camera delivered {data.shape[1]}x{data.shape[0]}x{data.shape[2]} "
-                                  f"frames; the rig expects {w}x{h}x{nch}")
+                raise DeviceError(
+                    f"measurement camera delivered {data.shape[1]}x{data.shape[0]}x{data.shape[2]} "
+                    f"frames; the rig expects {w}x{h}x{nch}"
+                )
             missing = list(range(k, min(frame.index, k_sub)))
             if missing:
                 dropped += missing
-                clog.info("dropped measuring subframe(s) %s: light estimated from subframe %d", missing, frame.index)
+                clog.info(
+                    "dropped measuring subframe(s) %s: light estimated from subframe %d",
+                    missing,
+                    frame.index,
+                )
             for kk in [*missing, frame.index] if frame.index < k_sub else missing:
                 t_start = time.perf_counter()
                 rig.tick()
@@ -180,31 +198,52 @@ def capture_frame(
         # Every commanded closure must have come back with an applied subframe.
         unaccounted = int(((decided >= 0) & (applied < 0)).sum())
         if unaccounted:
-            raise DeviceError(f"{unaccounted} commanded closures were never acknowledged as applied")
+            raise DeviceError(
+                f"{unaccounted} commanded closures were never acknowledged as applied"
+            )
         if rig.is_emulated:
             record = rig.emulator.snapshot()
-            close_sub = np.where(record.applied_subframe >= 0, record.applied_subframe - record.frame_start_subframe, -1)
+            close_sub = np.where(
+                record.applied_subframe >= 0,
+                record.applied_subframe - record.frame_start_subframe,
+                -1,
+            )
             vet_frame = rig.vet.expose_frame(close_sub)
         else:
             vet_frame = rig.vet.grab()
         img = vet_frame.data
         if img.shape[:2] != (h, w):
-            raise DeviceError(f"VET camera delivered {img.shape[1]}x{img.shape[0]} frames; the rig expects {w}x{h}")
+            raise DeviceError(
+                f"VET camera delivered {img.shape[1]}x{img.shape[0]} frames; the rig expects {w}x{h}"
+            )
         late = _lateness(decided, applied, s0, params.latency_subframes)
         stats = rig.lcos.stats.as_dict()
-        clog.stats.update({
-            "subframes": k_sub, "dropped_subframes": dropped, "closures": sent_cells,
-            "closed_fraction": float((decided >= 0).mean()),
-            "host_step_ms": _summary(step_ms),
-            "late_closures": late,
-            "link": stats,
-            "frame_start_subframe": int(s0),
-        })
+        clog.stats.update(
+            {
+                "subframes": k_sub,
+                "dropped_subframes": dropped,
+                "closures": sent_cells,
+                "closed_fraction": float((decided >= 0).mean()),
+                "host_step_ms": _summary(step_ms),
+                "late_closures": late,
+                "link": stats,
+                "frame_start_subframe": int(s0),
+            }
+        )
         clog.info("host step per subframe: median %.2f ms, p99 %.2f ms", *_pct(step_ms, [50, 99]))
-        clog.info("late closures: %d of %d (max %d subframes late)", late["count"], sent_cells, late["max"])
+        clog.info(
+            "late closures: %d of %d (max %d subframes late)",
+            late["count"],
+            sent_cells,
+            late["max"],
+        )
         meta: dict[str, Any] = {
-            "method": "vet", "integration_s": params.frame_s, "leakage_applies": True,
-            "rig_name": rig.name, "capture_stats": clog.stats, **rig.meta,
+            "method": "vet",
+            "integration_s": params.frame_s,
+            "leakage_applies": True,
+            "rig_name": rig.name,
+            "capture_stats": clog.stats,
+            **rig.meta,
         }
         if rig.scale:
             meta["radiance_scale"] = float(rig.scale)
@@ -212,10 +251,17 @@ def capture_frame(
             meta["measure_subframes"] = np.diff(edges).tolist()
         meta["provenance"] = (provenance or []) + [provenance_entry("capture", [rig.name])]
         cap = Capture(
-            I=img.astype(np.float32), T=exposure_time, channels=list(rig.channels), rig=params, meta=meta,
+            I=img.astype(np.float32),
+            T=exposure_time,
+            channels=list(rig.channels),
+            rig=params,
+            meta=meta,
             measure=measure,
-            measure_times=None if edges is None else np.stack([edges[:-1] * tau, edges[1:] * tau], axis=1),
-            truth=rig.truth, truth_motion=rig.truth_motion,
+            measure_times=None
+            if edges is None
+            else np.stack([edges[:-1] * tau, edges[1:] * tau], axis=1),
+            truth=rig.truth,
+            truth_motion=rig.truth_motion,
         )
         write_capture(folder / f"capture.{fmt}", cap)
         clog.info("wrote %s", folder / f"capture.{fmt}")
@@ -227,16 +273,26 @@ def capture_frame(
             clog.stats["link"] = rig.lcos.stats.as_dict()
         except Exception:  # noqa: BLE001
             pass
-        raise DeviceError(f"{exc} (after {n_done} of {params.n_subframes} subframes; "
-                          f"{folder} keeps what was captured and capture.log)") from None
+        raise DeviceError(
+            f"{exc} (after {n_done} of {params.n_subframes} subframes; "
+            f"{folder} keeps what was captured and capture.log)"
+        ) from None
     finally:
         if raw is not None:
             raw.flush()
             del raw
             raw_tmp.replace(folder / "measure_raw.npy")
             with atomic_output(folder / "measure_raw.json") as tmp:
-                tmp.write_text(json.dumps({"subframes_valid": n_done, "subframe_s": params.subframe_s,
-                                           "dtype": "int16 DN, black-level subtracted"}) + "\n")
+                tmp.write_text(
+                    json.dumps(
+                        {
+                            "subframes_valid": n_done,
+                            "subframe_s": params.subframe_s,
+                            "dtype": "int16 DN, black-level subtracted",
+                        }
+                    )
+                    + "\n"
+                )
         clog.write(folder)
 
 
@@ -247,8 +303,12 @@ def _lateness(decided: np.ndarray, applied: np.ndarray, s0: int, latency: int) -
         return {"count": 0, "max": 0, "mean": 0.0, "histogram": {}}
     delay = (applied[m] - s0) - (decided[m] + 1 + latency)
     values, counts = np.unique(delay, return_counts=True)
-    return {"count": int((delay > 0).sum()), "max": int(delay.max()), "mean": float(delay.mean()),
-            "histogram": {str(int(v)): int(c) for v, c in zip(values, counts, strict=True)}}
+    return {
+        "count": int((delay > 0).sum()),
+        "max": int(delay.max()),
+        "mean": float(delay.mean()),
+        "histogram": {str(int(v)): int(c) for v, c in zip(values, counts, strict=True)},
+    }
 
 
 def _pct(values: list[float], q: list[float]) -> list[float]:

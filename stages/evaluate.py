@@ -33,8 +33,15 @@ from .formats.io import atomic_output
 log = logging.getLogger(__name__)
 
 #: Table rows in order.
-ROWS = ("vet-deblur", "vet-deblur-paper", "vet-static", "adaptive-attenuation", "long", "short",
-        "vet-deblur-oracle")
+ROWS = (
+    "vet-deblur",
+    "vet-deblur-paper",
+    "vet-static",
+    "adaptive-attenuation",
+    "long",
+    "short",
+    "vet-deblur-oracle",
+)
 REGIONS = ("all", "dark", "bright")
 STATS = ("median", "p99", "rms")
 
@@ -82,11 +89,22 @@ def run_evaluation(
     rig = RigParams(sensor_size=(w, h))
     say(f"simulating {w}x{h} {motion.spec}")
     t0 = time.perf_counter()
-    caps = simulate(scene, motion, rig, seed=seed, methods=["vet", "long", "short", "adaptive-attenuation"])
+    caps = simulate(
+        scene, motion, rig, seed=seed, methods=["vet", "long", "short", "adaptive-attenuation"]
+    )
     sim_s = time.perf_counter() - t0
     vet = caps["vet"]
-    ev = Evaluation(scene_spec, motion.spec, (w, h), seed, truth=vet.truth, T=vet.T,
-                    truth_motion=vet.truth_motion, frame_s=rig.frame_s, subframe_s=rig.subframe_s)
+    ev = Evaluation(
+        scene_spec,
+        motion.spec,
+        (w, h),
+        seed,
+        truth=vet.truth,
+        T=vet.T,
+        truth_motion=vet.truth_motion,
+        frame_s=rig.frame_s,
+        subframe_s=rig.subframe_s,
+    )
     ev.runtime_s["simulate"] = sim_s
     plan: dict[str, Callable[[], Any]] = {
         "vet-static": lambda: (hdr_static(vet), None),
@@ -106,7 +124,12 @@ def run_evaluation(
             ev.velocity = vel
         ev.images[name] = img.radiance
         ev.scores[name] = stops_error(img.radiance, vet.truth, vet.T, rig.frame_s)
-        log.debug("evaluate: %s dark rms %.3f (%.1f s)", name, ev.scores[name]["dark"]["rms"], ev.runtime_s[name])
+        log.debug(
+            "evaluate: %s dark rms %.3f (%.1f s)",
+            name,
+            ev.scores[name]["dark"]["rms"],
+            ev.runtime_s[name],
+        )
     return ev
 
 
@@ -152,8 +175,12 @@ def results_markdown(ev: Evaluation) -> str:
     for r in rows:
         cells = [f"{r[f'{reg}_{st}']:.3f}" for reg in REGIONS for st in STATS]
         lines.append(f"| {r['method']} | " + " | ".join(cells) + f" | {r['runtime_s']:.1f} |")
-    lines += ["", f"Pixels scored: all {rows[0]['n_all']}, dark {rows[0]['n_dark']}, "
-              f"bright {rows[0]['n_bright']}. Simulation took {ev.runtime_s.get('simulate', 0):.1f} s.", ""]
+    lines += [
+        "",
+        f"Pixels scored: all {rows[0]['n_all']}, dark {rows[0]['n_dark']}, "
+        f"bright {rows[0]['n_bright']}. Simulation took {ev.runtime_s.get('simulate', 0):.1f} s.",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -195,6 +222,7 @@ def _tonemapper() -> Callable[[np.ndarray, float, float], np.ndarray]:
         tm(np.ones((2, 2, 1), np.float32), 0.1, 1.0)
         return tm
     except Exception:  # tonemap module absent or different: a plain global log mapping
+
         def tm(rad: np.ndarray, black: float, white: float) -> np.ndarray:
             lum = np.maximum(rad, 0)
             return np.clip(np.log1p(lum / black) / np.log1p(white / black), 0, 1).astype(np.float32)
@@ -222,7 +250,9 @@ def contact_sheet(ev: Evaluation) -> np.ndarray:
             d = np.repeat(d, 3, axis=2)
         img = np.ascontiguousarray((np.clip(d, 0, 1) * 255).astype(np.uint8))
         bar = np.zeros((22, w, 3), np.uint8)
-        cv2.putText(bar, name, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            bar, name, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA
+        )
         out_tiles.append(np.concatenate([bar, img], axis=0))
     cols = 4
     while len(out_tiles) % cols:
@@ -235,7 +265,11 @@ def motion_picture(ev: Evaluation) -> np.ndarray:
     """Estimated (default deblur) and true motion side by side on one colour wheel scale."""
     from .flow import flow_to_color
 
-    true = ev.truth_motion if ev.truth_motion is not None else np.zeros((*ev.truth.shape[:2], 2), np.float32)
+    true = (
+        ev.truth_motion
+        if ev.truth_motion is not None
+        else np.zeros((*ev.truth.shape[:2], 2), np.float32)
+    )
     est = ev.velocity if ev.velocity is not None else np.zeros_like(true)
     vmax = max(float(np.percentile(np.hypot(true[..., 0], true[..., 1]), 99)), 1.0)
     gap = np.full((true.shape[0], 8, 3), 255, np.uint8)
@@ -259,8 +293,9 @@ def write_report(ev: Evaluation, folder: str | Path) -> list[Path]:
     written.append(folder / "errors.png")
     write_display_image(folder / "contact_sheet.png", contact_sheet(ev))
     written.append(folder / "contact_sheet.png")
-    write_display_image(folder / "exposure_time.png",
-                        render_exposure_time_map(ev.T, ev.frame_s, ev.subframe_s))
+    write_display_image(
+        folder / "exposure_time.png", render_exposure_time_map(ev.T, ev.frame_s, ev.subframe_s)
+    )
     written.append(folder / "exposure_time.png")
     write_display_image(folder / "motion.png", motion_picture(ev))
     written.append(folder / "motion.png")

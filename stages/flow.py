@@ -73,8 +73,18 @@ def _flow_pair(a: np.ndarray, b: np.ndarray, method: str) -> np.ndarray:
     import cv2
 
     if method == "farneback":
-        return cv2.calcOpticalFlowFarneback(a, b, None, pyr_scale=0.5, levels=5, winsize=21,
-                                            iterations=5, poly_n=7, poly_sigma=1.5, flags=0)
+        return cv2.calcOpticalFlowFarneback(
+            a,
+            b,
+            None,
+            pyr_scale=0.5,
+            levels=5,
+            winsize=21,
+            iterations=5,
+            poly_n=7,
+            poly_sigma=1.5,
+            flags=0,
+        )
     if method == "dis":
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
         return dis.calc(a, b, None)
@@ -152,11 +162,19 @@ def estimate_velocity(
     conf *= valid.all(axis=0)
     conf = conf.astype(np.float32)
     if smooth_px > 0:
-        num = np.stack([cv2.GaussianBlur(vel[..., k] * conf, (0, 0), smooth_px) for k in range(2)], -1)
+        num = np.stack(
+            [cv2.GaussianBlur(vel[..., k] * conf, (0, 0), smooth_px) for k in range(2)], -1
+        )
         den = cv2.GaussianBlur(conf, (0, 0), smooth_px)[..., None]
         # Where no confident pixel is near, fall back to the global median velocity.
-        glob = np.median(vel[conf > np.percentile(conf, 50)], axis=0) if conf.max() > 0 else np.zeros(2)
-        vel = np.where(den > 1e-3, num / np.maximum(den, 1e-12), glob[None, None, :]).astype(np.float32)
+        glob = (
+            np.median(vel[conf > np.percentile(conf, 50)], axis=0)
+            if conf.max() > 0
+            else np.zeros(2)
+        )
+        vel = np.where(den > 1e-3, num / np.maximum(den, 1e-12), glob[None, None, :]).astype(
+            np.float32
+        )
     return vel.astype(np.float32), np.clip(conf, 0, 1)
 
 

@@ -100,8 +100,13 @@ def hdr_static(cap: Capture) -> HDRImage:
         "scene": cap.meta.get("scene"),
         "provenance": list(cap.meta.get("provenance", [])) + [provenance_entry("hdr-static")],
     }
-    return HDRImage(radiance=radiance.astype(np.float32), channels=list(cap.channels), meta=meta,
-                    mask=mask, exposure_time=cap.T)
+    return HDRImage(
+        radiance=radiance.astype(np.float32),
+        channels=list(cap.channels),
+        meta=meta,
+        mask=mask,
+        exposure_time=cap.T,
+    )
 
 
 def _rate_from_measure(cap: Capture) -> tuple[np.ndarray | None, np.ndarray]:
@@ -114,7 +119,9 @@ def _rate_from_measure(cap: Capture) -> tuple[np.ndarray | None, np.ndarray]:
     dur = t1 - t0
     n_sub = max(1, int(round(dur / rig.subframe_s)))
     m0 = cap.measure[0]
-    rate = (m0 / g - np.float32(rig.dark_current_e_s * dur)) / np.float32(dur * rig.measure_fraction)
+    rate = (m0 / g - np.float32(rig.dark_current_e_s * dur)) / np.float32(
+        dur * rig.measure_fraction
+    )
     # Valid unless some subframe of the bin may have clipped; for a still pixel the
     # subframes are alike, so the bin mean per subframe tells.
     per_sub = m0 / n_sub

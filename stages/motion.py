@@ -31,7 +31,9 @@ def _warp(img: np.ndarray, m: np.ndarray, border: int) -> np.ndarray:
     import cv2
 
     h, w = img.shape[:2]
-    out = cv2.warpAffine(img, m.astype(np.float64), (w, h), flags=cv2.INTER_LINEAR, borderMode=border)
+    out = cv2.warpAffine(
+        img, m.astype(np.float64), (w, h), flags=cv2.INTER_LINEAR, borderMode=border
+    )
     if out.ndim == 2 and img.ndim == 3:
         out = out[:, :, None]
     return out
@@ -143,7 +145,10 @@ class Rotate(Motion):
 
     def _centre(self, shape: tuple[int, int]) -> tuple[float, float]:
         h, w = shape
-        return (w / 2 - 0.5 if self.cx is None else self.cx, h / 2 - 0.5 if self.cy is None else self.cy)
+        return (
+            w / 2 - 0.5 if self.cx is None else self.cx,
+            h / 2 - 0.5 if self.cy is None else self.cy,
+        )
 
     def render(self, scene: np.ndarray, t: float) -> np.ndarray:
         import cv2
@@ -168,7 +173,9 @@ def _floats(text: str, n: int, spec: str) -> list[float]:
     except ValueError:
         vals = []
     if len(vals) != n or not all(math.isfinite(v) for v in vals):
-        raise InputError(f"invalid motion {spec!r}: expected {n} comma-separated numbers in {text!r}")
+        raise InputError(
+            f"invalid motion {spec!r}: expected {n} comma-separated numbers in {text!r}"
+        )
     return vals
 
 
@@ -186,7 +193,9 @@ def parse_motion(spec: str | None) -> Motion:
         x, y, w, h = _floats(rect, 4, spec)
         vx, vy = _floats(vel, 2, spec)
         if w <= 0 or h <= 0:
-            raise InputError(f"invalid motion {spec!r}: the rectangle needs positive width and height")
+            raise InputError(
+                f"invalid motion {spec!r}: the rectangle needs positive width and height"
+            )
         return ObjectMotion(int(x), int(y), int(w), int(h), vx, vy)
     if kind == "rotate":
         parts = rest.split(",")

@@ -16,7 +16,9 @@ import numpy as np
 from .errors import InputError
 
 
-def default_homography(lcos_cells: tuple[int, int], sensor_size: tuple[int, int]) -> list[list[float]]:
+def default_homography(
+    lcos_cells: tuple[int, int], sensor_size: tuple[int, int]
+) -> list[list[float]]:
     """Homography mapping LCoS cell coordinates onto sensor pixel coordinates.
 
     The default rig images the whole LCoS onto the whole sensor (a pure scale): cell
@@ -99,7 +101,10 @@ class RigParams:
             (self.read_noise_e >= 0, "read noise must be non-negative"),
             (4 <= self.adc_bits <= 24, "ADC depth must be 4 to 24 bits"),
             (self.dark_current_e_s >= 0, "dark current must be non-negative"),
-            (0 < self.threshold_frac <= 1, "threshold must be a fraction of the full well in (0, 1]"),
+            (
+                0 < self.threshold_frac <= 1,
+                "threshold must be a fraction of the full well in (0, 1]",
+            ),
             (self.latency_subframes >= 0, "latency must be a non-negative number of subframes"),
             (0 <= self.leakage < 1, "leakage must be in [0, 1)"),
             (min(self.lcos_cells) > 0, "LCoS grid must have positive size"),

@@ -35,7 +35,10 @@ def generate(folder: Path) -> list[Path]:
     rig = RigParams(sensor_size=SIZE)
     written = []
     scene_file = folder / "scenes" / "interior.exr"
-    write_hdr(scene_file, HDRImage(scene.radiance, scene.channels, {"units": "scene", "scene": scene.source}))
+    write_hdr(
+        scene_file,
+        HDRImage(scene.radiance, scene.channels, {"units": "scene", "scene": scene.source}),
+    )
     written.append(scene_file)
     for name, motion in (("interior_still", "none"), ("interior_pan", "translate:30,0")):
         cap = simulate(scene, parse_motion(motion), rig, seed=SEED, measure_bins=4)["vet"]
@@ -46,8 +49,10 @@ def generate(folder: Path) -> list[Path]:
         if motion == "none":
             img = hdr_static(cap)
             write_display_image(folder / "interior_hdr.png", tonemap(img.radiance, "log"))
-            write_display_image(folder / "interior_T.png",
-                                render_exposure_time_map(cap.T, rig.frame_s, rig.subframe_s))
+            write_display_image(
+                folder / "interior_T.png",
+                render_exposure_time_map(cap.T, rig.frame_s, rig.subframe_s),
+            )
             written += [folder / "interior_hdr.png", folder / "interior_T.png"]
     return written
 

@@ -194,7 +194,10 @@ def sanitise(radiance: np.ndarray, source: str) -> np.ndarray:
     if nbad or nneg:
         log.warning(
             "%s: %d non-finite and %d negative values set to 0 (scene radiance must be "
-            "finite and non-negative)", source, nbad, nneg,
+            "finite and non-negative)",
+            source,
+            nbad,
+            nneg,
         )
         radiance = np.where(bad | neg, 0.0, radiance).astype(np.float32)
     return radiance
@@ -220,7 +223,9 @@ def load_scene(spec: str, size: tuple[int, int] | None = None) -> Scene:
     if spec.startswith("builtin:"):
         name = spec.split(":", 1)[1]
         if name not in BUILTIN_SCENES:
-            raise InputError(f"unknown builtin scene {name!r}; choose from {', '.join(sorted(BUILTIN_SCENES))}")
+            raise InputError(
+                f"unknown builtin scene {name!r}; choose from {', '.join(sorted(BUILTIN_SCENES))}"
+            )
         w, h = size or (640, 512)
         scene = BUILTIN_SCENES[name](w, h)
         return scene

@@ -114,7 +114,9 @@ def simulate(
     short_e = None
     edges = measure_bin_edges(k_sub, measure_bins) if measure_bins > 0 else None
     measure = np.zeros((len(edges) - 1, *shape), np.float32) if edges is not None and ctrl else None
-    bin_of = np.searchsorted(edges, np.arange(k_sub), side="right") - 1 if edges is not None else None
+    bin_of = (
+        np.searchsorted(edges, np.arange(k_sub), side="right") - 1 if edges is not None else None
+    )
 
     still = motion.is_still
     rate_still = radiance * np.float32(scale) if still else None
@@ -170,8 +172,14 @@ def simulate(
     common = dict(channels=list(scene.channels), rig=rig, truth=truth, truth_motion=truth_motion)
 
     def meta_for(method: str, integration_s: float, leakage_applies: bool) -> dict[str, Any]:
-        m = dict(base_meta, method=method, integration_s=integration_s, leakage_applies=leakage_applies)
-        m["provenance"] = [provenance_entry("simulate", [scene.source], method=method, motion=motion.spec, seed=int(seed))]
+        m = dict(
+            base_meta, method=method, integration_s=integration_s, leakage_applies=leakage_applies
+        )
+        m["provenance"] = [
+            provenance_entry(
+                "simulate", [scene.source], method=method, motion=motion.spec, seed=int(seed)
+            )
+        ]
         return m
 
     out: dict[str, Capture] = {}
@@ -180,29 +188,49 @@ def simulate(
         mt = None
         if measure is not None:
             mt = np.stack([edges[:-1] * tau, edges[1:] * tau], axis=1)
-        cap = Capture(I=img, T=ctrl.exposure_time(), measure=measure, measure_times=mt,
-                      meta=meta_for("vet", tf, True), **common)
+        cap = Capture(
+            I=img,
+            T=ctrl.exposure_time(),
+            measure=measure,
+            measure_times=mt,
+            meta=meta_for("vet", tf, True),
+            **common,
+        )
         if measure is not None:
             cap.meta["measure_subframes"] = np.diff(edges).tolist()
         out["vet"] = cap
     if "long" in want:
         img = expose(full_e + np.float32(dark * tf), rig, rngs["long"])
-        out["long"] = Capture(I=img, T=np.full((h, w), tf, np.float32), meta=meta_for("long", tf, False), **common)
+        out["long"] = Capture(
+            I=img, T=np.full((h, w), tf, np.float32), meta=meta_for("long", tf, False), **common
+        )
     if "short" in want:
         img = expose(short_e + np.float32(dark * tau), rig, rngs["short"])
-        out["short"] = Capture(I=img, T=np.full((h, w), tau, np.float32), meta=meta_for("short", tau, False), **common)
+        out["short"] = Capture(
+            I=img, T=np.full((h, w), tau, np.float32), meta=meta_for("short", tau, False), **common
+        )
     if "adaptive-attenuation" in want:
         a = attenuation_from_previous_frame(radiance, motion, rig, scale, cellmap)
-        img = expose(full_e * a[..., None] + np.float32(dark * tf), rig, rngs["adaptive-attenuation"])
+        img = expose(
+            full_e * a[..., None] + np.float32(dark * tf), rig, rngs["adaptive-attenuation"]
+        )
         out["adaptive-attenuation"] = Capture(
-            I=img, T=np.full((h, w), tf, np.float32), transmittance=a,
-            meta=meta_for("adaptive-attenuation", tf, False), **common,
+            I=img,
+            T=np.full((h, w), tf, np.float32),
+            transmittance=a,
+            meta=meta_for("adaptive-attenuation", tf, False),
+            **common,
         )
     return {m: out[m] for m in methods}
 
 
 def attenuation_from_previous_frame(
-    radiance: np.ndarray, motion: Motion, rig: RigParams, scale: float, cellmap: CellMap, samples: int = 8
+    radiance: np.ndarray,
+    motion: Motion,
+    rig: RigParams,
+    scale: float,
+    cellmap: CellMap,
+    samples: int = 8,
 ) -> np.ndarray:
     """Per-pixel LCoS transmittance of adaptive attenuation, from the previous frame.
 

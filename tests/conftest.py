@@ -27,8 +27,9 @@ def shared_hdr() -> Path:
 def run_vet(*args: str, input: bytes | None = None, cwd: Path | None = None, timeout: float = 300):
     """Run the vet CLI in a subprocess; returns CompletedProcess with bytes output."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.run([*VET, *map(str, args)], input=input, capture_output=True,
-                          cwd=cwd, env=env, timeout=timeout)
+    return subprocess.run(
+        [*VET, *map(str, args)], input=input, capture_output=True, cwd=cwd, env=env, timeout=timeout
+    )
 
 
 @pytest.fixture

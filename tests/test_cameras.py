@@ -72,6 +72,8 @@ def test_emulated_cameras_match_simulate(small_scene):
 
 def test_dropped_frames_show_as_index_gaps(small_scene):
     rig = RigParams(sensor_size=(96, 80))
-    cam = EmulatedMeasurementCamera(small_scene.radiance, parse_motion("none"), rig, 1.0, drop=(1, 2))
+    cam = EmulatedMeasurementCamera(
+        small_scene.radiance, parse_motion("none"), rig, 1.0, drop=(1, 2)
+    )
     with cam:
         assert [cam.grab().index for _ in range(3)] == [0, 3, 4]

@@ -35,7 +35,9 @@ def _capture(tmp_path, **opts):
 
 def _t_from_record(record, cellmap, rig_params):
     a = record.applied_subframe.astype(np.float64)
-    t = np.where(a >= 0, (a - record.frame_start_subframe) * rig_params.subframe_s, rig_params.frame_s)
+    t = np.where(
+        a >= 0, (a - record.frame_start_subframe) * rig_params.subframe_s, rig_params.frame_s
+    )
     t = np.clip(t, 0, rig_params.frame_s).astype(np.float32)
     return cellmap.to_pixels(np.append(t, np.float32(rig_params.frame_s)))
 
@@ -43,12 +45,19 @@ def _t_from_record(record, cellmap, rig_params):
 def test_capture_folder_and_hdr_static(tmp_path):
     cap, record, host_applied, cellmap = _capture(tmp_path)
     folder = tmp_path / "cap"
-    assert {p.name for p in folder.iterdir()} >= {"capture.exr", "measure_raw.npy", "measure_raw.json",
-                                                  "capture.log", "capture.json"}
+    assert {p.name for p in folder.iterdir()} >= {
+        "capture.exr",
+        "measure_raw.npy",
+        "measure_raw.json",
+        "capture.log",
+        "capture.json",
+    }
     raw = np.load(folder / "measure_raw.npy", allow_pickle=False)
     assert raw.shape == (cap.rig.n_subframes, SIZE[1], SIZE[0], 3)
     # The stored bins are the sums of the raw subframes.
-    np.testing.assert_allclose(cap.measure.sum(axis=0), raw.sum(axis=0, dtype=np.float64), rtol=1e-5)
+    np.testing.assert_allclose(
+        cap.measure.sum(axis=0), raw.sum(axis=0, dtype=np.float64), rtol=1e-5
+    )
     back = read_capture(folder)
     err = stops_error(hdr_static(back).radiance, back.truth, back.T, back.rig.frame_s)
     assert err["all"]["median"] < 0.08
@@ -84,8 +93,19 @@ def test_dropped_frames_are_logged_and_filled(tmp_path):
 
 
 def test_disconnect_stops_cleanly_and_keeps_what_was_captured(tmp_path):
-    res = run_vet("capture", "--rig", "sim", "--scene", "builtin:chart", "--size", "96x80",
-                  "--disconnect-at", "40", "-o", tmp_path / "cut")
+    res = run_vet(
+        "capture",
+        "--rig",
+        "sim",
+        "--scene",
+        "builtin:chart",
+        "--size",
+        "96x80",
+        "--disconnect-at",
+        "40",
+        "-o",
+        tmp_path / "cut",
+    )
     err = res.stderr.decode().strip().splitlines()
     assert res.returncode == 1
     assert len([ln for ln in err if "error" in ln]) == 1 and "Traceback" not in res.stderr.decode()
@@ -115,22 +135,41 @@ def test_rig_file_errors(tmp_path):
 
 def test_hardware_rig_with_no_controller_fails_with_a_device_error(tmp_path):
     rig = tmp_path / "rig.toml"
-    rig.write_text('[lcos]\nurl = "/dev/ttyNOPE0"\n[measurement_camera]\nsource = "/dev/video99"\n'
-                   '[vet_camera]\nsource = "/dev/video98"\n')
+    rig.write_text(
+        '[lcos]\nurl = "/dev/ttyNOPE0"\n[measurement_camera]\nsource = "/dev/video99"\n'
+        '[vet_camera]\nsource = "/dev/video98"\n'
+    )
     with pytest.raises(DeviceError):
         open_rig(str(rig))
 
 
 def test_calibration_feeds_capture_and_size_mismatch_is_refused(tmp_path):
     cal = tmp_path / "cal.npz"
-    res = run_vet("calibrate", "--rig", "sim", "--size", "96x80", "--lcos", "64x40", "--true-homography",
-                  "example", "-o", cal)
+    res = run_vet(
+        "calibrate",
+        "--rig",
+        "sim",
+        "--size",
+        "96x80",
+        "--lcos",
+        "64x40",
+        "--true-homography",
+        "example",
+        "-o",
+        cal,
+    )
     assert res.returncode == 0, res.stderr
-    res = run_vet("capture", "--rig", "sim", "--size", "96x80", "--calibration", cal, "-o", tmp_path / "c")
+    res = run_vet(
+        "capture", "--rig", "sim", "--size", "96x80", "--calibration", cal, "-o", tmp_path / "c"
+    )
     assert res.returncode == 0, res.stderr
     cap = read_capture(tmp_path / "c")
-    assert cap.rig.lcos_cells == (64, 40) and cap.rig.homography != RigParamsDefault(96, 80).homography
-    res = run_vet("capture", "--rig", "sim", "--size", "128x96", "--calibration", cal, "-o", tmp_path / "d")
+    assert (
+        cap.rig.lcos_cells == (64, 40) and cap.rig.homography != RigParamsDefault(96, 80).homography
+    )
+    res = run_vet(
+        "capture", "--rig", "sim", "--size", "128x96", "--calibration", cal, "-o", tmp_path / "d"
+    )
     assert res.returncode == 1 and b"made for a 96x80 sensor" in res.stderr
 
 

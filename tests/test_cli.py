@@ -35,15 +35,23 @@ def _truncated_exr(p, cap):
 
 
 def _pickled_npz(p):
-    np.savez(p, **{"layer:I": np.array([{"evil": 1}], dtype=object)},
-             __meta__=np.array('{"kind": "capture"}'), __channels__=np.array('{"I": ["Y"]}'))
+    np.savez(
+        p,
+        **{"layer:I": np.array([{"evil": 1}], dtype=object)},
+        __meta__=np.array('{"kind": "capture"}'),
+        __channels__=np.array('{"I": ["Y"]}'),
+    )
 
 
 def _shape_mismatch_npz(p, cap):
     data = cap.to_layered()
     arrays = {"layer:I": data.layers["I"], "layer:T": data.layers["T"][:-3, :-2]}
-    np.savez(p, **arrays, __meta__=np.array(json.dumps(data.meta)),
-             __channels__=np.array(json.dumps({"I": data.channels["I"], "T": ["Y"]})))
+    np.savez(
+        p,
+        **arrays,
+        __meta__=np.array(json.dumps(data.meta)),
+        __channels__=np.array(json.dumps({"I": data.channels["I"], "T": ["Y"]})),
+    )
 
 
 def _nan_in_t(p, cap):
@@ -119,14 +127,26 @@ def test_simulate_help_names_the_builtin_scenes():
 
 def test_top_level_help_lists_every_command():
     res = invoke("--help")
-    for name in ("simulate", "hdr-static", "deblur", "tonemap", "calibrate", "capture",
-                 "evaluate", "batch", "info"):
+    for name in (
+        "simulate",
+        "hdr-static",
+        "deblur",
+        "tonemap",
+        "calibrate",
+        "capture",
+        "evaluate",
+        "batch",
+        "info",
+    ):
         assert name in res.output
 
 
 def test_simulate_then_hdr_static_files_and_info(tmp_path):
     cap, hdr = tmp_path / "c.npz", tmp_path / "h.exr"
-    assert invoke("simulate", "builtin:chart", "--size", "64x48", "--seed", "2", "-o", cap).exit_code == 0
+    assert (
+        invoke("simulate", "builtin:chart", "--size", "64x48", "--seed", "2", "-o", cap).exit_code
+        == 0
+    )
     assert invoke("hdr-static", cap, "-o", hdr).exit_code == 0
     res = invoke("info", hdr)
     info = json.loads(res.output)

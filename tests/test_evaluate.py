@@ -14,15 +14,40 @@ HDR_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "hdr"
 
 def test_evaluate_writes_all_files(tmp_path):
     out = tmp_path / "report"
-    res = CliRunner().invoke(cli, ["evaluate", "builtin:chart", "--size", "64x48", "--motion",
-                                   "translate:30,0", "-o", str(out), "-q"])
+    res = CliRunner().invoke(
+        cli,
+        [
+            "evaluate",
+            "builtin:chart",
+            "--size",
+            "64x48",
+            "--motion",
+            "translate:30,0",
+            "-o",
+            str(out),
+            "-q",
+        ],
+    )
     assert res.exit_code == 0, res.output
-    for name in ("results.csv", "results.md", "errors.png", "contact_sheet.png", "exposure_time.png",
-                 "motion.png"):
+    for name in (
+        "results.csv",
+        "results.md",
+        "errors.png",
+        "contact_sheet.png",
+        "exposure_time.png",
+        "motion.png",
+    ):
         assert (out / name).is_file(), name
     text = (out / "results.md").read_text()
-    for row in ("vet-deblur", "vet-deblur-paper", "vet-static", "adaptive-attenuation", "long", "short",
-                "vet-deblur-oracle"):
+    for row in (
+        "vet-deblur",
+        "vet-deblur-paper",
+        "vet-static",
+        "adaptive-attenuation",
+        "long",
+        "short",
+        "vet-deblur-oracle",
+    ):
         assert f"| {row} |" in text
     header = (out / "results.csv").read_text().splitlines()[0]
     assert "dark_rms" in header and "runtime_s" in header
@@ -40,7 +65,9 @@ def test_deblur_cli_bad_capture_exits_1(tmp_path):
 
 
 def test_deblur_cli_usage_error_exits_2(tmp_path):
-    res = CliRunner().invoke(cli, ["deblur", "x.exr", "-o", str(tmp_path / "o.exr"), "--method", "magic"])
+    res = CliRunner().invoke(
+        cli, ["deblur", "x.exr", "-o", str(tmp_path / "o.exr"), "--method", "magic"]
+    )
     assert res.exit_code == 2
 
 
@@ -48,11 +75,35 @@ def test_deblur_cli_writes_image_and_motion(tmp_path):
     from stages.formats.hdr import read_hdr
 
     cap = tmp_path / "cap.exr"
-    r = CliRunner().invoke(cli, ["simulate", "builtin:chart", "--size", "48x40", "--motion", "translate:20,0",
-                                 "-o", str(cap), "-q"])
+    r = CliRunner().invoke(
+        cli,
+        [
+            "simulate",
+            "builtin:chart",
+            "--size",
+            "48x40",
+            "--motion",
+            "translate:20,0",
+            "-o",
+            str(cap),
+            "-q",
+        ],
+    )
     assert r.exit_code == 0, r.output
-    res = CliRunner().invoke(cli, ["deblur", str(cap), "-o", str(tmp_path / "d.exr"), "--motion-out",
-                                   str(tmp_path / "m.exr"), "--motion-picture", str(tmp_path / "m.png"), "-q"])
+    res = CliRunner().invoke(
+        cli,
+        [
+            "deblur",
+            str(cap),
+            "-o",
+            str(tmp_path / "d.exr"),
+            "--motion-out",
+            str(tmp_path / "m.exr"),
+            "--motion-picture",
+            str(tmp_path / "m.png"),
+            "-q",
+        ],
+    )
     assert res.exit_code == 0, res.output
     img = read_hdr(tmp_path / "d.exr")
     assert img.meta["method"] == "vet-deblur" and np.all(np.isfinite(img.radiance))

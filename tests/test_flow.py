@@ -17,7 +17,9 @@ from stages.simulate import simulate
 def moving_chart():
     w, h = 128, 96
     rig = RigParams(sensor_size=(w, h))
-    return simulate(builtin_chart(w, h), parse_motion("translate:30,-10"), rig, seed=3, methods=["vet"])["vet"]
+    return simulate(
+        builtin_chart(w, h), parse_motion("translate:30,-10"), rig, seed=3, methods=["vet"]
+    )["vet"]
 
 
 @pytest.mark.parametrize("method", ["farneback", "dis"])

@@ -85,7 +85,9 @@ def test_metadata_readable_by_oiiotool(tmp_path, small_capture):
     if not Path(oiiotool).exists():
         pytest.skip("oiiotool not installed")
     write_capture(tmp_path / "c.exr", small_capture)
-    out = subprocess.run([oiiotool, "--info", "-v", str(tmp_path / "c.exr")], capture_output=True, text=True)
+    out = subprocess.run(
+        [oiiotool, "--info", "-v", str(tmp_path / "c.exr")], capture_output=True, text=True
+    )
     assert 'vet:kind: "capture"' in out.stdout
     line = next(ln for ln in out.stdout.splitlines() if "vet:meta" in ln)
     assert '"frame_s": 0.99975' in line and '"radiance_scale"' in line
@@ -145,7 +147,9 @@ def test_pickled_npz_is_refused(tmp_path):
         read_layered(p)
 
 
-def test_declared_size_over_limit_is_refused_before_allocating(tmp_path, small_capture, monkeypatch):
+def test_declared_size_over_limit_is_refused_before_allocating(
+    tmp_path, small_capture, monkeypatch
+):
     write_capture(tmp_path / "c.npz", small_capture)
     write_capture(tmp_path / "c.exr", small_capture)
     monkeypatch.setattr(vio, "MAX_INPUT_BYTES", 1000)
@@ -187,5 +191,14 @@ def test_metadata_is_json_serialisable_and_complete(tmp_path, small_capture):
     write_capture(tmp_path / "c.npz", small_capture)
     meta = read_layered(tmp_path / "c.npz").meta
     json.dumps(meta)
-    for key in ("rig", "units", "radiance_scale", "method", "motion", "seed", "provenance", "measure_times"):
+    for key in (
+        "rig",
+        "units",
+        "radiance_scale",
+        "method",
+        "motion",
+        "seed",
+        "provenance",
+        "measure_times",
+    ):
         assert key in meta

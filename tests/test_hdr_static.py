@@ -20,8 +20,13 @@ def test_inversion_is_exact_for_noise_free_values():
     rate = np.array([[1e3, 2e4, 3e5], [7.0, 3e2, 9e4]], np.float32)  # e-/s
     t = np.array([[rig.frame_s, 0.2, 0.0152], [rig.frame_s, 0.5, 0.03]], np.float32)
     e = rate * (t + rig.leakage * (rig.frame_s - t)) + rig.dark_current_e_s * rig.frame_s
-    cap = Capture(I=(e * rig.gain_dn_per_e)[..., None], T=t, channels=["Y"], rig=rig,
-                  meta={"radiance_scale": 2.0, "method": "vet"})
+    cap = Capture(
+        I=(e * rig.gain_dn_per_e)[..., None],
+        T=t,
+        channels=["Y"],
+        rig=rig,
+        meta={"radiance_scale": 2.0, "method": "vet"},
+    )
     out = hdr_static(cap)
     np.testing.assert_allclose(out.radiance[..., 0], rate / 2.0, rtol=1e-5)
     assert out.meta["units"] == "scene"
@@ -30,8 +35,13 @@ def test_inversion_is_exact_for_noise_free_values():
 
 def test_units_are_dn_per_second_without_a_radiance_scale():
     rig = RigParams(sensor_size=(1, 1), dark_current_e_s=0.0)
-    cap = Capture(I=np.full((1, 1, 1), 1000.0, np.float32), T=np.full((1, 1), rig.frame_s, np.float32),
-                  channels=["Y"], rig=rig, meta={"method": "vet"})
+    cap = Capture(
+        I=np.full((1, 1, 1), 1000.0, np.float32),
+        T=np.full((1, 1), rig.frame_s, np.float32),
+        channels=["Y"],
+        rig=rig,
+        meta={"method": "vet"},
+    )
     out = hdr_static(cap)
     assert out.meta["units"] == "DN/s"
     assert out.radiance[0, 0, 0] == pytest.approx(1000.0 / rig.frame_s, rel=1e-6)
@@ -57,8 +67,13 @@ def test_saturated_pixels_are_recovered_from_measuring_images_and_flagged():
 
 def test_dark_pixels_below_noise_floor_are_flagged_not_negative():
     rig = RigParams(sensor_size=(2, 1))
-    cap = Capture(I=np.zeros((1, 2, 1), np.float32), T=np.full((1, 2), rig.frame_s, np.float32),
-                  channels=["Y"], rig=rig, meta={"method": "vet"})
+    cap = Capture(
+        I=np.zeros((1, 2, 1), np.float32),
+        T=np.full((1, 2), rig.frame_s, np.float32),
+        channels=["Y"],
+        rig=rig,
+        meta={"method": "vet"},
+    )
     out = hdr_static(cap)
     assert np.all(out.radiance > 0) and np.all(out.mask == 3)
 
@@ -84,8 +99,12 @@ def test_round_trip_shared_scenes_half_resolution(shared_hdr, name):
     rad = resample(sanitise(rad, name), (rad.shape[1] // 2, rad.shape[0] // 2))
     h, w = rad.shape[:2]
     rig = RigParams(sensor_size=(w, h))
-    caps = simulate(Scene(rad, ch, name), parse_motion("none"), rig, seed=1, methods=["vet", "long", "short"])
-    err = {m: stops_error(hdr_static(c).radiance, c.truth, c.T, rig.frame_s) for m, c in caps.items()}
+    caps = simulate(
+        Scene(rad, ch, name), parse_motion("none"), rig, seed=1, methods=["vet", "long", "short"]
+    )
+    err = {
+        m: stops_error(hdr_static(c).radiance, c.truth, c.T, rig.frame_s) for m, c in caps.items()
+    }
     vet = err["vet"]
     assert vet["all"]["median"] <= 0.08 and vet["all"]["p99"] <= 1.5
     assert vet["nonfinite"] == 0 and vet["nonpositive"] == 0

@@ -37,7 +37,10 @@ def test_expose_clips_at_full_well_and_adc(rng):
 def test_cell_map_default_homography_tiles_the_sensor():
     rig = RigParams(sensor_size=(1280, 1024))
     cm = CellMap.for_rig(rig, (1024, 1280))
-    assert cm.pixel_cell.min() == 0 and cm.pixel_cell.max() == rig.lcos_cells[0] * rig.lcos_cells[1] - 1
+    assert (
+        cm.pixel_cell.min() == 0
+        and cm.pixel_cell.max() == rig.lcos_cells[0] * rig.lcos_cells[1] - 1
+    )
     # 1280/1024 = 1.25 px per cell across, 1024/600 = 1.71 down: pixel centres x = 2.5
     # and 3.5 fall in cell 2; rows y = 0.5 and 1.5 both in cell row 0.
     assert cm.pixel_cell[0, 2] == cm.pixel_cell[0, 3] == 2
@@ -126,7 +129,9 @@ def test_object_occludes_and_uncovers():
     assert out[7, 7, 0] == pytest.approx(1.0)  # uncovered area shows the still scene
 
 
-@pytest.mark.parametrize("bad", ["translate:1", "object:1,2,3:4,5", "spin:3", "translate:a,b", "object:0,0,0,5:1,1"])
+@pytest.mark.parametrize(
+    "bad", ["translate:1", "object:1,2,3:4,5", "spin:3", "translate:a,b", "object:0,0,0,5:1,1"]
+)
 def test_bad_motion_specs_are_refused(bad):
     from stages.errors import InputError
 
@@ -146,8 +151,11 @@ def test_rig_validation_speaks_sentences():
 def test_fast_controller_matches_a_plain_per_cell_max(rng):
     """The incremental controller decides exactly like the textbook rule: close a cell
     once the maximum running sum over its pixels reaches theta."""
-    rig = RigParams(sensor_size=(50, 40), lcos_cells=(17, 11),
-                    homography=[[2.9, 0.2, 0.5], [-0.1, 3.6, 0.3], [0.0, 0.0, 1.0]])
+    rig = RigParams(
+        sensor_size=(50, 40),
+        lcos_cells=(17, 11),
+        homography=[[2.9, 0.2, 0.5], [-0.1, 3.6, 0.3], [0.0, 0.0, 1.0]],
+    )
     cm = CellMap.for_rig(rig, (40, 50))
     ctrl = ClosureController(rig, cm)
     rates = rng.random((40, 50)).astype(np.float32) ** 3 * rig.threshold_dn / 8
@@ -157,7 +165,9 @@ def test_fast_controller_matches_a_plain_per_cell_max(rng):
         frame = rng.poisson(rates).astype(np.float32)
         sums += frame
         cmax = cm.cell_max(sums)
-        crossed = np.flatnonzero((cmax >= rig.threshold_dn) & (ref_close == ClosureController.NEVER))
+        crossed = np.flatnonzero(
+            (cmax >= rig.threshold_dn) & (ref_close == ClosureController.NEVER)
+        )
         crossed = crossed[crossed < cm.n_cells]
         ref_close[crossed] = k + 1 + rig.latency_subframes
         new = ctrl.step(frame, k)

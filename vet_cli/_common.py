@@ -31,15 +31,33 @@ def _set_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> in
 
 def verbosity_options(f: Callable) -> Callable:
     """``-v`` (repeatable: more detail, tracebacks) and ``-q`` (warnings only)."""
-    f = click.option("-q", "--quiet", count=True, expose_value=False, callback=_set_verbosity,
-                     help="Less output on stderr (warnings and errors only).")(f)
-    f = click.option("-v", "--verbose", count=True, expose_value=False, callback=_set_verbosity,
-                     help="More output on stderr; -v also shows tracebacks on errors.")(f)
+    f = click.option(
+        "-q",
+        "--quiet",
+        count=True,
+        expose_value=False,
+        callback=_set_verbosity,
+        help="Less output on stderr (warnings and errors only).",
+    )(f)
+    f = click.option(
+        "-v",
+        "--verbose",
+        count=True,
+        expose_value=False,
+        callback=_set_verbosity,
+        help="More output on stderr; -v also shows tracebacks on errors.",
+    )(f)
     return f
 
 
 def setup_logging() -> None:
-    level = logging.INFO if State.verbosity == 0 else logging.DEBUG if State.verbosity > 0 else logging.WARNING
+    level = (
+        logging.INFO
+        if State.verbosity == 0
+        else logging.DEBUG
+        if State.verbosity > 0
+        else logging.WARNING
+    )
     root = logging.getLogger()
     for h in list(root.handlers):
         root.removeHandler(h)
@@ -77,7 +95,10 @@ def command(name: str) -> Callable:
                 where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
                 _fail(name, f"{where}{exc.strerror or exc}")
             except Exception as exc:  # a bug: still one line, traceback with -v
-                _fail(name, f"internal error ({type(exc).__name__}: {exc}); rerun with -v for the traceback")
+                _fail(
+                    name,
+                    f"internal error ({type(exc).__name__}: {exc}); rerun with -v for the traceback",
+                )
 
         return wrapper
 

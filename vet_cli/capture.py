@@ -29,25 +29,58 @@ Example:
 @click.option("--rig", "rig_spec", required=True, help="'sim' or a rig TOML file.")
 @click.option("-o", "--output", required=True, help="Capture folder (created if missing).")
 @click.option("--calibration", default=None, help="Calibration file from vet calibrate.")
-@click.option("--scene", default="builtin:interior", show_default=True, help="[sim] Scene to render.")
+@click.option(
+    "--scene", default="builtin:interior", show_default=True, help="[sim] Scene to render."
+)
 @click.option("--motion", default="none", show_default=True, help="[sim] Motion SPEC.")
 @click.option("--size", default=None, metavar="WxH", help="[sim] Resample the scene.")
 @click.option("--seed", type=int, default=0, show_default=True, help="[sim] Noise and fault seed.")
-@click.option("--link-bps", type=float, default=None, help="[sim] LCoS link rate, bit/s [unthrottled].")
-@click.option("--link-fault-rate", type=click.FloatRange(0, 1), default=0.0, show_default=True,
-              help="[sim] Per-frame probability of a corrupted, dropped or delayed frame, both ways.")
-@click.option("--disconnect-at", type=int, default=None, metavar="SUBFRAME",
-              help="[sim] Cut the LCoS link at this device subframe.")
+@click.option(
+    "--link-bps", type=float, default=None, help="[sim] LCoS link rate, bit/s [unthrottled]."
+)
+@click.option(
+    "--link-fault-rate",
+    type=click.FloatRange(0, 1),
+    default=0.0,
+    show_default=True,
+    help="[sim] Per-frame probability of a corrupted, dropped or delayed frame, both ways.",
+)
+@click.option(
+    "--disconnect-at",
+    type=int,
+    default=None,
+    metavar="SUBFRAME",
+    help="[sim] Cut the LCoS link at this device subframe.",
+)
 @click.option("--measure-bins", type=click.IntRange(0, 1000), default=8, show_default=True)
-@click.option("--raw-stream/--no-raw-stream", default=True, show_default=True,
-              help="Keep every measuring subframe in measure_raw.npy.")
-@click.option("--format", "fmt", type=click.Choice(["exr", "npz"]), default="exr", show_default=True)
+@click.option(
+    "--raw-stream/--no-raw-stream",
+    default=True,
+    show_default=True,
+    help="Keep every measuring subframe in measure_raw.npy.",
+)
+@click.option(
+    "--format", "fmt", type=click.Choice(["exr", "npz"]), default="exr", show_default=True
+)
 @rig_options
 @verbosity_options
 @command("capture")
-def cli(rig_spec: str, output: str, calibration: str | None, scene: str, motion: str, size: str | None,
-        seed: int, link_bps: float | None, link_fault_rate: float, disconnect_at: int | None,
-        measure_bins: int, raw_stream: bool, fmt: str, **kwargs) -> None:
+def cli(
+    rig_spec: str,
+    output: str,
+    calibration: str | None,
+    scene: str,
+    motion: str,
+    size: str | None,
+    seed: int,
+    link_bps: float | None,
+    link_fault_rate: float,
+    disconnect_at: int | None,
+    measure_bins: int,
+    raw_stream: bool,
+    fmt: str,
+    **kwargs,
+) -> None:
     from stages.capture import capture_frame
     from stages.devices.rigs import SimOptions, open_rig
     from stages.scenes import parse_size
@@ -59,21 +92,42 @@ def cli(rig_spec: str, output: str, calibration: str | None, scene: str, motion:
 
         cal = read_calibration(calibration)
         overrides.update(calibration_changes(cal))
-    sim = SimOptions(scene=scene, motion=motion, size=parse_size(size), seed=seed, link_bps=link_bps,
-                     link_fault_rate=link_fault_rate, disconnect_at_subframe=disconnect_at,
-                     overrides=overrides)
+    sim = SimOptions(
+        scene=scene,
+        motion=motion,
+        size=parse_size(size),
+        seed=seed,
+        link_bps=link_bps,
+        link_fault_rate=link_fault_rate,
+        disconnect_at_subframe=disconnect_at,
+        overrides=overrides,
+    )
     with open_rig(rig_spec, sim) as rig:
         if cal is not None and tuple(cal.sensor_size) != tuple(rig.params.sensor_size):
             from stages.errors import InputError
 
-            raise InputError(f"{calibration}: made for a {cal.sensor_size[0]}x{cal.sensor_size[1]} sensor, "
-                             f"but the rig's is {rig.params.sensor_size[0]}x{rig.params.sensor_size[1]}")
+            raise InputError(
+                f"{calibration}: made for a {cal.sensor_size[0]}x{cal.sensor_size[1]} sensor, "
+                f"but the rig's is {rig.params.sensor_size[0]}x{rig.params.sensor_size[1]}"
+            )
         log.debug("capture: rig %s, sensor %dx%d", rig.name, *rig.params.sensor_size)
         progress = Progress("capture")
-        cap = capture_frame(rig, output, measure_bins=measure_bins, raw_stream=raw_stream, fmt=fmt,
-                            progress=progress)
+        cap = capture_frame(
+            rig,
+            output,
+            measure_bins=measure_bins,
+            raw_stream=raw_stream,
+            fmt=fmt,
+            progress=progress,
+        )
         progress.finish()
     stats = cap.meta["capture_stats"]
-    log.info("captured %s: %d closures, %d late (max %d subframes), %d retransmits, %d dropped subframes",
-             output, stats["closures"], stats["late_closures"]["count"], stats["late_closures"]["max"],
-             stats["link"].get("retransmits", 0), len(stats["dropped_subframes"]))
+    log.info(
+        "captured %s: %d closures, %d late (max %d subframes), %d retransmits, %d dropped subframes",
+        output,
+        stats["closures"],
+        stats["late_closures"]["count"],
+        stats["late_closures"]["max"],
+        stats["link"].get("retransmits", 0),
+        len(stats["dropped_subframes"]),
+    )

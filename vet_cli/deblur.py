@@ -13,8 +13,10 @@ from ._common import Progress, command, log, verbosity_options
 
 Estimates the scene L0 and a per-pixel velocity u (px/s) jointly from the variable
 exposure image I, the exposure time image T and the measuring images. --method vet (the
-default) uses a noise-weighted misfit on I and the measuring images, conjugate-gradient
-image solves and Gauss-Newton motion updates, robust at occlusions; --method paper
+default) estimates a layered motion (still background and translating layers, with
+occlusion) from all the measuring images and solves a noise-weighted misfit on I and
+the measuring images with conjugate gradients, robust at occlusions; pixels whose
+integration path does not move keep hdr-static; --method paper
 reproduces the published method (least squares on I, Laplacian and
 histogram-intersection priors, steepest descent). --motion-init truth starts from (and,
 with the default method, keeps) the simulator's true motion: an oracle for research.
@@ -27,19 +29,44 @@ Example:
 """,
 )
 @click.argument("capture")
-@click.option("-o", "--output", required=True, help="HDR image (.exr or .npz), or - for stdout (EXR).")
-@click.option("--method", type=click.Choice(["vet", "paper"]), default="vet", show_default=True,
-              help="Reconstruction method.")
-@click.option("--motion-init", type=click.Choice(["farneback", "dis", "truth", "zero"]), default=None,
-              help="Start of the motion estimate [farneback].")
-@click.option("--motion-out", default=None, metavar="MOTION.exr",
-              help="Also write the estimated motion (layer 'motion', channels u, v, px/s).")
-@click.option("--motion-picture", default=None, metavar="MOTION.png",
-              help="Also write a colour-wheel picture of the estimated motion.")
+@click.option(
+    "-o", "--output", required=True, help="HDR image (.exr or .npz), or - for stdout (EXR)."
+)
+@click.option(
+    "--method",
+    type=click.Choice(["vet", "paper"]),
+    default="vet",
+    show_default=True,
+    help="Reconstruction method.",
+)
+@click.option(
+    "--motion-init",
+    type=click.Choice(["farneback", "dis", "truth", "zero"]),
+    default=None,
+    help="Start of the motion estimate [farneback].",
+)
+@click.option(
+    "--motion-out",
+    default=None,
+    metavar="MOTION.exr",
+    help="Also write the estimated motion (layer 'motion', channels u, v, px/s).",
+)
+@click.option(
+    "--motion-picture",
+    default=None,
+    metavar="MOTION.png",
+    help="Also write a colour-wheel picture of the estimated motion.",
+)
 @verbosity_options
 @command("deblur")
-def cli(capture: str, output: str, method: str, motion_init: str | None, motion_out: str | None,
-        motion_picture: str | None) -> None:
+def cli(
+    capture: str,
+    output: str,
+    method: str,
+    motion_init: str | None,
+    motion_out: str | None,
+    motion_picture: str | None,
+) -> None:
     from stages.deblur import deblur
     from stages.flow import flow_to_color, write_motion
     from stages.formats import read_capture, write_hdr
@@ -52,7 +79,10 @@ def cli(capture: str, output: str, method: str, motion_init: str | None, motion_
     log.debug("deblur: %s in %.1f s", img.meta["method"], img.meta["runtime_s"])
     write_hdr(output, img)
     if motion_out:
-        write_motion(motion_out, vel, {"source": capture, "method": img.meta["method"],
-                                       "provenance": img.meta["provenance"]})
+        write_motion(
+            motion_out,
+            vel,
+            {"source": capture, "method": img.meta["method"], "provenance": img.meta["provenance"]},
+        )
     if motion_picture:
         write_display_image(motion_picture, flow_to_color(vel))

@@ -34,6 +34,8 @@ def cli(scene: str, output: str, motion: str, size: str | None, seed: int) -> No
     from stages.evaluate import results_markdown, run_evaluation, write_report
     from stages.scenes import parse_size
 
-    ev = run_evaluation(scene, motion, parse_size(size), seed, progress=lambda m: log.info("evaluate: %s", m))
+    ev = run_evaluation(
+        scene, motion, parse_size(size), seed, progress=lambda m: log.info("evaluate: %s", m)
+    )
     write_report(ev, output)
     log.info("%s", results_markdown(ev))

@@ -24,7 +24,9 @@ Example:
 """,
 )
 @click.argument("capture")
-@click.option("-o", "--output", required=True, help="HDR image (.exr or .npz), or - for stdout (EXR).")
+@click.option(
+    "-o", "--output", required=True, help="HDR image (.exr or .npz), or - for stdout (EXR)."
+)
 @verbosity_options
 @command("hdr-static")
 def cli(capture: str, output: str) -> None:
@@ -38,5 +40,7 @@ def cli(capture: str, output: str) -> None:
     counts = np.bincount(img.mask.ravel(), minlength=4)
     log.debug("hdr-static: mask counts valid=%d recovered=%d saturated=%d floor=%d", *counts[:4])
     if counts[2]:
-        log.warning("%d pixels saturated in every image: values are lower bounds (mask code 2)", counts[2])
+        log.warning(
+            "%d pixels saturated in every image: values are lower bounds (mask code 2)", counts[2]
+        )
     write_hdr(output, img)

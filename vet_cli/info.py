@@ -20,7 +20,9 @@ Example:
 """,
 )
 @click.argument("file")
-@click.option("--layers/--no-layers", default=True, show_default=True, help="Include per-layer statistics.")
+@click.option(
+    "--layers/--no-layers", default=True, show_default=True, help="Include per-layer statistics."
+)
 @verbosity_options
 @command("info")
 def cli(file: str, layers: bool) -> None:

@@ -12,14 +12,38 @@ from ._common import verbosity_options
 
 # name -> (module, short help). Modules are imported only when the command runs.
 COMMANDS = {
-    "simulate": ("vet_cli.simulate", "Render what a VET rig records from an HDR scene with motion."),
-    "hdr-static": ("vet_cli.hdr_static", "Static HDR from a capture: I/T corrected for leakage, dark current."),
-    "deblur": ("vet_cli.deblur", "Jointly estimate the sharp HDR image and the motion of a capture."),
-    "tonemap": ("vet_cli.tonemap", "Tone-map an HDR image (or picture T and the mask) to PNG/JPEG/TIFF."),
-    "calibrate": ("vet_cli.calibrate", "Calibrate a rig: homographies, dark, leakage and gain maps."),
-    "capture": ("vet_cli.capture", "Capture a frame with a rig (real hardware or the emulated 'sim')."),
-    "evaluate": ("vet_cli.evaluate", "Run every method on a scene and motion; table, charts, pictures."),
-    "batch": ("vet_cli.batch", "Process a folder of captures (hdr-static, deblur, tonemap) in parallel."),
+    "simulate": (
+        "vet_cli.simulate",
+        "Render what a VET rig records from an HDR scene with motion.",
+    ),
+    "hdr-static": (
+        "vet_cli.hdr_static",
+        "Static HDR from a capture: I/T corrected for leakage, dark current.",
+    ),
+    "deblur": (
+        "vet_cli.deblur",
+        "Jointly estimate the sharp HDR image and the motion of a capture.",
+    ),
+    "tonemap": (
+        "vet_cli.tonemap",
+        "Tone-map an HDR image (or picture T and the mask) to PNG/JPEG/TIFF.",
+    ),
+    "calibrate": (
+        "vet_cli.calibrate",
+        "Calibrate a rig: homographies, dark, leakage and gain maps.",
+    ),
+    "capture": (
+        "vet_cli.capture",
+        "Capture a frame with a rig (real hardware or the emulated 'sim').",
+    ),
+    "evaluate": (
+        "vet_cli.evaluate",
+        "Run every method on a scene and motion; table, charts, pictures.",
+    ),
+    "batch": (
+        "vet_cli.batch",
+        "Process a folder of captures (hdr-static, deblur, tonemap) in parallel.",
+    ),
     "info": ("vet_cli.info", "Print a vet file's metadata as JSON."),
 }
 

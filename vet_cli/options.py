@@ -24,7 +24,9 @@ RIG_OPTIONS = [
 def rig_options(f: Callable) -> Callable:
     for opt, _field, typ, hlp in reversed(RIG_OPTIONS):
         f = click.option(opt, type=typ, default=None, help=hlp)(f)
-    f = click.option("--lcos", "lcos", default=None, metavar="WxH", help="LCoS grid in cells [1024x600].")(f)
+    f = click.option(
+        "--lcos", "lcos", default=None, metavar="WxH", help="LCoS grid in cells [1024x600]."
+    )(f)
     return f
 
 

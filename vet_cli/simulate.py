@@ -30,21 +30,46 @@ Example:
 """,
 )
 @click.argument("scene")
-@click.option("-o", "--output", required=True, help="Capture file (.exr or .npz), or - for stdout (EXR).")
+@click.option(
+    "-o", "--output", required=True, help="Capture file (.exr or .npz), or - for stdout (EXR)."
+)
 @click.option("--motion", default="none", show_default=True, help="Motion SPEC (see above).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed for all noise.")
 @click.option("--size", default=None, metavar="WxH", help="Resample the scene to this sensor size.")
-@click.option("--method", type=click.Choice(METHODS), default="vet", show_default=True,
-              help="What records the scene.")
-@click.option("--measure-bins", type=click.IntRange(0, 1000), default=8, show_default=True,
-              help="Time bins of measuring images stored in the capture (0: none).")
-@click.option("--radiance-scale", type=float, default=None,
-              help="Electrons/s per scene unit [p99.9 luminance reaches the threshold in one subframe].")
+@click.option(
+    "--method",
+    type=click.Choice(METHODS),
+    default="vet",
+    show_default=True,
+    help="What records the scene.",
+)
+@click.option(
+    "--measure-bins",
+    type=click.IntRange(0, 1000),
+    default=8,
+    show_default=True,
+    help="Time bins of measuring images stored in the capture (0: none).",
+)
+@click.option(
+    "--radiance-scale",
+    type=float,
+    default=None,
+    help="Electrons/s per scene unit [p99.9 luminance reaches the threshold in one subframe].",
+)
 @rig_options
 @verbosity_options
 @command("simulate")
-def cli(scene: str, output: str, motion: str, seed: int, size: str | None, method: str,
-        measure_bins: int, radiance_scale: float | None, **kwargs) -> None:
+def cli(
+    scene: str,
+    output: str,
+    motion: str,
+    seed: int,
+    size: str | None,
+    method: str,
+    measure_bins: int,
+    radiance_scale: float | None,
+    **kwargs,
+) -> None:
     from stages.formats import write_capture
     from stages.motion import parse_motion
     from stages.rig import RigParams
@@ -58,7 +83,15 @@ def cli(scene: str, output: str, motion: str, seed: int, size: str | None, metho
     rig = RigParams(sensor_size=(w, h), **overrides)
     log.debug("simulate: %s %dx%d %s, %d subframes", scene, w, h, mot.spec, rig.n_subframes)
     progress = Progress(f"simulate {method}")
-    caps = simulate(sc, mot, rig, seed=seed, methods=[method], measure_bins=measure_bins,
-                    progress=progress, scale=radiance_scale)
+    caps = simulate(
+        sc,
+        mot,
+        rig,
+        seed=seed,
+        methods=[method],
+        measure_bins=measure_bins,
+        progress=progress,
+        scale=radiance_scale,
+    )
     progress.finish()
     write_capture(output, caps[method])

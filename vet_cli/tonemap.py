@@ -25,18 +25,36 @@ Example:
 """,
 )
 @click.argument("input")
-@click.option("-o", "--output", required=True, help="Picture file (.png/.jpg/.tif) or - (PNG on stdout).")
+@click.option(
+    "-o", "--output", required=True, help="Picture file (.png/.jpg/.tif) or - (PNG on stdout)."
+)
 @click.option("--operator", type=click.Choice(OPERATORS), default="log", show_default=True)
-@click.option("--exposure", type=float, default=0.0, show_default=True, help="Exposure shift in stops.")
+@click.option(
+    "--exposure", type=float, default=0.0, show_default=True, help="Exposure shift in stops."
+)
 @click.option("--gamma", type=float, default=None, help="Display gamma [operator's default].")
-@click.option("--bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
-              help="Bits per channel (16: PNG or TIFF only).")
-@click.option("--exposure-time-map", "what", flag_value="T", help="Picture T in false colour with a scale.")
+@click.option(
+    "--bits",
+    type=click.Choice(["8", "16"]),
+    default="8",
+    show_default=True,
+    help="Bits per channel (16: PNG or TIFF only).",
+)
+@click.option(
+    "--exposure-time-map", "what", flag_value="T", help="Picture T in false colour with a scale."
+)
 @click.option("--mask", "what", flag_value="mask", help="Picture the quality mask with a legend.")
 @verbosity_options
 @command("tonemap")
-def cli(input: str, output: str, operator: str, exposure: float, gamma: float | None, bits: str,
-        what: str | None) -> None:
+def cli(
+    input: str,
+    output: str,
+    operator: str,
+    exposure: float,
+    gamma: float | None,
+    bits: str,
+    what: str | None,
+) -> None:
     from stages.errors import FormatError, InputError
     from stages.formats.images import display_format, write_display_image
     from stages.formats.layered import read_layered
@@ -56,8 +74,10 @@ def cli(input: str, output: str, operator: str, exposure: float, gamma: float | 
         write_display_image(output, picture, bits=8)
         return
     if kind == "capture":
-        raise InputError(f"{name}: is a capture, not an HDR image; run hdr-static or deblur first "
-                         "(or use --exposure-time-map)")
+        raise InputError(
+            f"{name}: is a capture, not an HDR image; run hdr-static or deblur first "
+            "(or use --exposure-time-map)"
+        )
     if kind not in (None, "hdr"):
         raise InputError(f"{name}: is a {kind} file, not an HDR image")
     from stages.formats.hdr import MASK_CODES, HDRImage, _foreign_to_hdr

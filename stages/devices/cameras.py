@@ -94,7 +94,9 @@ class OpenCVCamera(Camera):
         Timestamp spacing for replayed sources (they carry no clock).
     """
 
-    def __init__(self, source: str | int, exposure: float | None = None, frame_period_s: float = 0.00758):
+    def __init__(
+        self, source: str | int, exposure: float | None = None, frame_period_s: float = 0.00758
+    ):
         super().__init__()
         self.source = source
         self.exposure = exposure
@@ -108,7 +110,9 @@ class OpenCVCamera(Camera):
 
         src = self.source
         if isinstance(src, str) and Path(src).is_dir():
-            files = sorted(f for f in glob.glob(os.path.join(src, "*")) if f.lower().endswith(IMAGE_EXTENSIONS))
+            files = sorted(
+                f for f in glob.glob(os.path.join(src, "*")) if f.lower().endswith(IMAGE_EXTENSIONS)
+            )
             if not files:
                 raise InputError(f"{src}: folder holds no PNG or TIFF frames")
             self._files = files
@@ -150,7 +154,9 @@ class OpenCVCamera(Camera):
         else:
             ok, img = self._cap.read()
             if not ok or img is None:
-                raise DeviceError(f"camera {self.source!r} delivered no frame (ended or disconnected)")
+                raise DeviceError(
+                    f"camera {self.source!r} delivered no frame (ended or disconnected)"
+                )
             pos = self._cap.get(cv2.CAP_PROP_POS_FRAMES)
             idx = int(pos) - 1 if pos and pos > 0 else idx
             msec = self._cap.get(cv2.CAP_PROP_POS_MSEC)
@@ -199,8 +205,16 @@ class EmulatedMeasurementCamera(Camera):
     handling of dropped frames.
     """
 
-    def __init__(self, radiance: np.ndarray, motion: Motion, rig: RigParams, scale: float,
-                 seed: int = 0, drop: tuple[int, ...] = (), realtime: bool = False):
+    def __init__(
+        self,
+        radiance: np.ndarray,
+        motion: Motion,
+        rig: RigParams,
+        scale: float,
+        seed: int = 0,
+        drop: tuple[int, ...] = (),
+        realtime: bool = False,
+    ):
         super().__init__()
         self.rig = rig
         self.source = _SceneSource(radiance, motion, scale)
@@ -263,13 +277,22 @@ class EmulatedVETCamera(Camera):
     rig's nominal one, which is what calibration must discover.
     """
 
-    def __init__(self, radiance: np.ndarray, motion: Motion, rig: RigParams, scale: float,
-                 seed: int = 0, true_homography: np.ndarray | None = None):
+    def __init__(
+        self,
+        radiance: np.ndarray,
+        motion: Motion,
+        rig: RigParams,
+        scale: float,
+        seed: int = 0,
+        true_homography: np.ndarray | None = None,
+    ):
         super().__init__()
         self.rig = rig
         self.source = _SceneSource(radiance, motion, scale)
         h, w = radiance.shape[:2]
-        hom = np.asarray(rig.homography if true_homography is None else true_homography, dtype=float)
+        hom = np.asarray(
+            rig.homography if true_homography is None else true_homography, dtype=float
+        )
         self.cellmap = CellMap(hom, rig.lcos_cells, (h, w))
         self.rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(5)[0])
         self._frames = 0
@@ -306,7 +329,9 @@ class EmulatedVETCamera(Camera):
         self._frames += 1
         return frame
 
-    def expose_pattern(self, open_cells: np.ndarray | None, exposure_s: float, light: bool = True) -> np.ndarray:
+    def expose_pattern(
+        self, open_cells: np.ndarray | None, exposure_s: float, light: bool = True
+    ) -> np.ndarray:
         """A still exposure of ``exposure_s`` through a static mask (None: all open);
         ``light=False`` is a dark frame (lens capped)."""
         rig = self.rig

@@ -136,14 +136,42 @@ def open_sim_rig(opts: SimOptions) -> Rig:
     except Exception:
         emu.stop()
         raise
-    meas = EmulatedMeasurementCamera(scene.radiance, motion, params, scale, seed=opts.seed,
-                                     drop=opts.drop_frames, realtime=opts.realtime)
-    vet = EmulatedVETCamera(scene.radiance, motion, params, scale, seed=opts.seed,
-                            true_homography=None if opts.true_homography is None else np.asarray(opts.true_homography))
-    return Rig(params=params, lcos=lcos, measurement=meas, vet=vet, name="sim", emulator=emu, scale=scale,
-               truth=scene.radiance, truth_motion=motion.velocity((h, w)), channels=list(scene.channels),
-               meta={"scene": scene.source, "motion": motion.spec, "seed": opts.seed,
-                     "link_bps": opts.link_bps, "link_fault_rate": opts.link_fault_rate})
+    meas = EmulatedMeasurementCamera(
+        scene.radiance,
+        motion,
+        params,
+        scale,
+        seed=opts.seed,
+        drop=opts.drop_frames,
+        realtime=opts.realtime,
+    )
+    vet = EmulatedVETCamera(
+        scene.radiance,
+        motion,
+        params,
+        scale,
+        seed=opts.seed,
+        true_homography=None if opts.true_homography is None else np.asarray(opts.true_homography),
+    )
+    return Rig(
+        params=params,
+        lcos=lcos,
+        measurement=meas,
+        vet=vet,
+        name="sim",
+        emulator=emu,
+        scale=scale,
+        truth=scene.radiance,
+        truth_motion=motion.velocity((h, w)),
+        channels=list(scene.channels),
+        meta={
+            "scene": scene.source,
+            "motion": motion.spec,
+            "seed": opts.seed,
+            "link_bps": opts.link_bps,
+            "link_fault_rate": opts.link_fault_rate,
+        },
+    )
 
 
 def load_rig_file(path: str | Path) -> dict[str, Any]:
@@ -164,10 +192,12 @@ def load_rig_file(path: str | Path) -> dict[str, Any]:
         if not isinstance(data.get(section), dict):
             raise InputError(f"{p}: rig file lacks the [{section}] section")
     if "url" not in data["lcos"]:
-        raise InputError(f"{p}: [lcos] needs url = \"/dev/ttyACM0\" (any pyserial URL)")
+        raise InputError(f'{p}: [lcos] needs url = "/dev/ttyACM0" (any pyserial URL)')
     for cam in ("measurement_camera", "vet_camera"):
         if "source" not in data[cam]:
-            raise InputError(f"{p}: [{cam}] needs source = \"/dev/videoN\" (or a video / frame folder)")
+            raise InputError(
+                f'{p}: [{cam}] needs source = "/dev/videoN" (or a video / frame folder)'
+            )
     return data
 
 
@@ -180,8 +210,15 @@ def open_hardware_rig(path: str | Path) -> Rig:
     mc, vc = data["measurement_camera"], data["vet_camera"]
     meas = OpenCVCamera(mc["source"], exposure=mc.get("exposure"), frame_period_s=params.subframe_s)
     vet = OpenCVCamera(vc["source"], exposure=vc.get("exposure"), frame_period_s=params.frame_s)
-    return Rig(params=params, lcos=lcos, measurement=meas, vet=vet, name=str(path),
-               channels=["Y"], meta={"rig_file": str(path)})
+    return Rig(
+        params=params,
+        lcos=lcos,
+        measurement=meas,
+        vet=vet,
+        name=str(path),
+        channels=["Y"],
+        meta={"rig_file": str(path)},
+    )
 
 
 def open_rig(spec: str, sim: SimOptions | None = None) -> Rig:

@@ -125,7 +125,14 @@ class Capture:
         meta["format_version"] = 1
         meta["rig"] = self.rig.to_dict()
         meta["channels"] = list(self.channels)
-        meta["units"] = {"I": "DN", "T": "s", "M": "DN", "A": "1", "truth": "scene", "truth_motion": "px/s"}
+        meta["units"] = {
+            "I": "DN",
+            "T": "s",
+            "M": "DN",
+            "A": "1",
+            "truth": "scene",
+            "truth_motion": "px/s",
+        }
         if self.measure_times is not None:
             meta["measure_times"] = np.asarray(self.measure_times, dtype=float).tolist()
         data.meta = meta
@@ -151,7 +158,9 @@ class Capture:
         mkeys = sorted(k for k in data.layers if len(k) == 3 and k[0] == "M" and k[1:].isdigit())
         measure = np.stack([data.layers[k] for k in mkeys]) if mkeys else None
         mt = meta.get("measure_times")
-        measure_times = np.asarray(mt, dtype=np.float64) if mt is not None and measure is not None else None
+        measure_times = (
+            np.asarray(mt, dtype=np.float64) if mt is not None and measure is not None else None
+        )
         cap = cls(
             I=data.layers["I"],
             T=data.layers["T"][:, :, 0],

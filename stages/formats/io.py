@@ -80,7 +80,9 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
                     break
                 total += len(chunk)
                 if total > MAX_INPUT_BYTES:
-                    raise InputError("standard input exceeds the input size limit (VET_MAX_INPUT_BYTES)")
+                    raise InputError(
+                        "standard input exceeds the input size limit (VET_MAX_INPUT_BYTES)"
+                    )
                 out.write(chunk)
         if total == 0:
             raise InputError("standard input is empty (nothing was piped in)")

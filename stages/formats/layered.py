@@ -101,7 +101,9 @@ def write_exr(path: Path, data: Layered, compression: str = "zip") -> None:
         out.close()
 
 
-def read_oiio(path: str | Path, what: str, attrs: tuple[str, ...] = ()) -> tuple[np.ndarray, list[str], dict[str, str]]:
+def read_oiio(
+    path: str | Path, what: str, attrs: tuple[str, ...] = ()
+) -> tuple[np.ndarray, list[str], dict[str, str]]:
     """Read any image OpenImageIO reads at full resolution (subimage 0, MIP level 0;
     tiles handled by OIIO), checking the declared size before allocating.
 
@@ -188,7 +190,9 @@ def read_npz(path: Path, what: str | None = None) -> Layered:
                 raise FormatError(f"{what}: unexpected member {m!r} in .npz")
             shape, dtype = _npz_member_header(zf, m, what)
             if dtype.hasobject:
-                raise FormatError(f"{what}: member {m[:-4]!r} holds Python objects (pickle); refusing to load")
+                raise FormatError(
+                    f"{what}: member {m[:-4]!r} holds Python objects (pickle); refusing to load"
+                )
             total += int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
         check_size(total, what)
         try:

@@ -28,7 +28,10 @@ SCENES = ["Desk", "CandleGlass", "GoldenGate", "Bonita", "Cannon"]
 def _frames(shape, n, rig, rng):
     """Synthetic measuring subframes: rates spread so closures happen all frame long."""
     h, w = shape
-    ramp = np.linspace(0, 1, w, dtype=np.float32)[None, :] ** 3 * np.linspace(0.2, 1, h, dtype=np.float32)[:, None]
+    ramp = (
+        np.linspace(0, 1, w, dtype=np.float32)[None, :] ** 3
+        * np.linspace(0.2, 1, h, dtype=np.float32)[:, None]
+    )
     rates = ramp * rig.threshold_dn / 3
     return [rng.poisson(rates).astype(np.float32) for _ in range(n)]
 
@@ -77,14 +80,19 @@ def bench_host_step() -> None:
             count += new.size
         return times, count
 
-    for name, fn in (("vet ClosureController + encode", run_vet_step), ("plain numpy (np.maximum.at)", run_baseline)):
+    for name, fn in (
+        ("vet ClosureController + encode", run_vet_step),
+        ("plain numpy (np.maximum.at)", run_baseline),
+    ):
         all_t = []
         for _ in range(3):
             t, closed = fn()
             all_t += t
         ms = np.array(all_t) * 1e3
-        print(f"host step 1280x1024 [{name}]: median {np.median(ms):.2f} ms, p90 {np.percentile(ms, 90):.2f} ms, "
-              f"max {ms.max():.2f} ms over {len(ms)} subframes; {closed} cells closed per frame")
+        print(
+            f"host step 1280x1024 [{name}]: median {np.median(ms):.2f} ms, p90 {np.percentile(ms, 90):.2f} ms, "
+            f"max {ms.max():.2f} ms over {len(ms)} subframes; {closed} cells closed per frame"
+        )
     print("target: median <= 1.5 ms (subframe 7.58 ms)")
 
 
@@ -126,34 +134,62 @@ def bench_capture_vs_simulate(tmp: Path) -> None:
         h, w = sc.radiance.shape[:2]
         ref = simulate(sc, parse_motion("none"), RigParams(sensor_size=(w, h)), seed=1)["vet"]
         ec, es = _err(cap), _err(ref)
-        rows.append({"scene": name, "capture_median": ec["all"]["median"], "simulate_median": es["all"]["median"],
-                     "capture_rms": ec["all"]["rms"], "simulate_rms": es["all"]["rms"],
-                     "rms_ratio": ec["all"]["rms"] / es["all"]["rms"],
-                     "late": cap.meta["capture_stats"]["late_closures"]["count"],
-                     "closures": cap.meta["capture_stats"]["closures"]})
+        rows.append(
+            {
+                "scene": name,
+                "capture_median": ec["all"]["median"],
+                "simulate_median": es["all"]["median"],
+                "capture_rms": ec["all"]["rms"],
+                "simulate_rms": es["all"]["rms"],
+                "rms_ratio": ec["all"]["rms"] / es["all"]["rms"],
+                "late": cap.meta["capture_stats"]["late_closures"]["count"],
+                "closures": cap.meta["capture_stats"]["closures"],
+            }
+        )
     print("capture --rig sim + hdr-static vs simulate + hdr-static (stops; target: within 10%):")
-    print(table(rows, ["scene", "capture_median", "simulate_median", "capture_rms", "simulate_rms",
-                       "rms_ratio", "late", "closures"]))
+    print(
+        table(
+            rows,
+            [
+                "scene",
+                "capture_median",
+                "simulate_median",
+                "capture_rms",
+                "simulate_rms",
+                "rms_ratio",
+                "late",
+                "closures",
+            ],
+        )
+    )
 
 
 def bench_faults_and_slow_link(tmp: Path) -> None:
-    cap, record, host = _capture_sim(tmp / "faults", "builtin:interior", size=(640, 512), link_fault_rate=0.01)
+    cap, record, host = _capture_sim(
+        tmp / "faults", "builtin:interior", size=(640, 512), link_fault_rate=0.01
+    )
     st = cap.meta["capture_stats"]
     same = bool(np.array_equal(host, record.applied_subframe))
-    print(f"link fault rate 0.01 (640x512): closures {st['closures']}, device-applied "
-          f"{int((record.applied_subframe >= 0).sum())}, host table == emulator record: {same}; "
-          f"retransmits {st['link'].get('retransmits')}, naks {st['link'].get('naks')}, "
-          f"timeouts {st['link'].get('timeouts')}, bad frames {st['link'].get('bad_frames')}")
+    print(
+        f"link fault rate 0.01 (640x512): closures {st['closures']}, device-applied "
+        f"{int((record.applied_subframe >= 0).sum())}, host table == emulator record: {same}; "
+        f"retransmits {st['link'].get('retransmits')}, naks {st['link'].get('naks')}, "
+        f"timeouts {st['link'].get('timeouts')}, bad frames {st['link'].get('bad_frames')}"
+    )
     for bps in (None, 3e6):
-        cap, record, host = _capture_sim(tmp / f"link{bps}", "builtin:interior", size=(1280, 1024), link_bps=bps)
+        cap, record, host = _capture_sim(
+            tmp / f"link{bps}", "builtin:interior", size=(1280, 1024), link_bps=bps
+        )
         st = cap.meta["capture_stats"]
         e = _err(cap)
         late = st["late_closures"]
-        print(f"link {'unthrottled' if bps is None else f'{bps / 1e6:g} Mbit/s'} (1280x1024 interior): closures "
-              f"{st['closures']}, late {late['count']} (mean delay {late['mean']:.2f}, max {late['max']} subframes), "
-              f"delay histogram {late['histogram']}; host step median {st['host_step_ms']['median']:.2f} ms; "
-              f"hdr-static error median {e['all']['median']:.4f} p99 {e['all']['p99']:.3f} rms {e['all']['rms']:.4f} stops; "
-              f"host table == emulator record: {bool(np.array_equal(host, record.applied_subframe))}")
+        print(
+            f"link {'unthrottled' if bps is None else f'{bps / 1e6:g} Mbit/s'} (1280x1024 interior): closures "
+            f"{st['closures']}, late {late['count']} (mean delay {late['mean']:.2f}, max {late['max']} subframes), "
+            f"delay histogram {late['histogram']}; host step median {st['host_step_ms']['median']:.2f} ms; "
+            f"hdr-static error median {e['all']['median']:.4f} p99 {e['all']['p99']:.3f} rms {e['all']['rms']:.4f} stops; "
+            f"host table == emulator record: {bool(np.array_equal(host, record.applied_subframe))}"
+        )
 
 
 def main() -> None:

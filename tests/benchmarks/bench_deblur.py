@@ -46,7 +46,10 @@ def main(size: str = "1280x1024") -> dict:
         dt = time.perf_counter() - t0
         err = stops_error(img.radiance, cap.truth, cap.T, rig.frame_s)["dark"]["rms"]
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-        print(f"{method}: {dt:.1f} s, dark RMS {err:.3f} stops, peak RSS so far {peak:.2f} GB", flush=True)
+        print(
+            f"{method}: {dt:.1f} s, dark RMS {err:.3f} stops, peak RSS so far {peak:.2f} GB",
+            flush=True,
+        )
         out[method] = {"time_s": dt, "dark_rms": err, "peak_gb": peak}
         if method == "vet":
             print("  CG iteration  dark RMS (stops)")

@@ -16,11 +16,24 @@ SCENES = ["Desk", "CandleGlass", "GoldenGate", "Bonita", "Cannon"]
 def bench_simulate_and_hdr_static() -> None:
     out = out_dir()
     cap = out / "sim1280.exr"
-    sim = vet_cmd("-q", "simulate", "builtin:chart", "--size", "1280x1024", "--motion", "translate:30,0",
-                  "--seed", "1", "-o", cap)
+    sim = vet_cmd(
+        "-q",
+        "simulate",
+        "builtin:chart",
+        "--size",
+        "1280x1024",
+        "--motion",
+        "translate:30,0",
+        "--seed",
+        "1",
+        "-o",
+        cap,
+    )
     t_sim, runs = time_cmd(sim, repeat=2)
-    print(f"simulate 1280x1024 mono, 131 subframes, translate:30,0 (CLI, incl. EXR write): "
-          f"median {t_sim:.2f} s  runs {[round(r, 2) for r in runs]}  target <= 15 s")
+    print(
+        f"simulate 1280x1024 mono, 131 subframes, translate:30,0 (CLI, incl. EXR write): "
+        f"median {t_sim:.2f} s  runs {[round(r, 2) for r in runs]}  target <= 15 s"
+    )
     from stages.motion import parse_motion
     from stages.rig import RigParams
     from stages.scenes import load_scene
@@ -68,15 +81,39 @@ def round_trip_table() -> None:
         for method, cap in caps.items():
             img = hdr_static(cap)
             e = stops_error(img.radiance, cap.truth, cap.T, rig.frame_s)
-            rows.append({
-                "scene": name, "method": method, "median": e["all"]["median"], "p99": e["all"]["p99"],
-                "rms": e["all"]["rms"], "scale": e["scale"], "nonfinite": e["nonfinite"] + e["nonpositive"],
-                "recovered_px": int((img.mask == 1).sum()), "lower_bound_px": int((img.mask == 2).sum()),
-            })
-    print("static round trip, no motion, default rig, seed 1, stops on luminance, floor 1e-4 x p99.9, "
-          "8 px border excluded (targets for vet: median <= 0.08, p99 <= 1.5, scale within 2%):")
-    print(table(rows, ["scene", "method", "median", "p99", "rms", "scale", "nonfinite",
-                       "recovered_px", "lower_bound_px"]))
+            rows.append(
+                {
+                    "scene": name,
+                    "method": method,
+                    "median": e["all"]["median"],
+                    "p99": e["all"]["p99"],
+                    "rms": e["all"]["rms"],
+                    "scale": e["scale"],
+                    "nonfinite": e["nonfinite"] + e["nonpositive"],
+                    "recovered_px": int((img.mask == 1).sum()),
+                    "lower_bound_px": int((img.mask == 2).sum()),
+                }
+            )
+    print(
+        "static round trip, no motion, default rig, seed 1, stops on luminance, floor 1e-4 x p99.9, "
+        "8 px border excluded (targets for vet: median <= 0.08, p99 <= 1.5, scale within 2%):"
+    )
+    print(
+        table(
+            rows,
+            [
+                "scene",
+                "method",
+                "median",
+                "p99",
+                "rms",
+                "scale",
+                "nonfinite",
+                "recovered_px",
+                "lower_bound_px",
+            ],
+        )
+    )
 
 
 def main() -> None:

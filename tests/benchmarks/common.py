@@ -30,14 +30,20 @@ def time_cmd(cmd: list[str], repeat: int = 3) -> tuple[float, list[float]]:
     times = []
     for _ in range(repeat):
         t0 = time.perf_counter()
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                       env=dict(os.environ))
+        subprocess.run(
+            cmd,
+            check=True,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=dict(os.environ),
+        )
         times.append(time.perf_counter() - t0)
     return statistics.median(times), times
 
 
 def table(rows: list[dict], cols: list[str]) -> str:
     """A Markdown table of ``rows`` (dicts) with ``cols``."""
+
     def fmt(v):
         return f"{v:.3f}" if isinstance(v, float) else str(v)
 
