@@ -50,13 +50,22 @@ def test_forward_matches_simulator_noise_free():
     for j in range(rig.n_subframes):
         t = (j + 0.5) * rig.subframe_s
         open_ = (j + 1) * rig.subframe_s <= t_closed + 1e-9
-        expected += motion.render(scene.radiance, t) * np.where(open_, 1.0, rig.leakage)[..., None] * rig.subframe_s
+        expected += (
+            motion.render(scene.radiance, t)
+            * np.where(open_, 1.0, rig.leakage)[..., None]
+            * rig.subframe_s
+        )
     tail = rig.frame_s - rig.n_subframes * rig.subframe_s
     t_open = t_closed >= rig.frame_s * (1 - 1e-6)
     expected += motion.render(scene.radiance, rig.n_subframes * rig.subframe_s + tail / 2) * (
-        np.where(t_open, 1.0, rig.leakage)[..., None] * tail)
-    A = blur_matrix(cap.truth_motion, vet_windows(cap.T, rig.frame_s, rig.subframe_s, rig.n_subframes, rig.leakage),
-                    step_px=0.05, max_samples=200)
+        np.where(t_open, 1.0, rig.leakage)[..., None] * tail
+    )
+    A = blur_matrix(
+        cap.truth_motion,
+        vet_windows(cap.T, rig.frame_s, rig.subframe_s, rig.n_subframes, rig.leakage),
+        step_px=0.05,
+        max_samples=200,
+    )
     model = apply(A, scene.radiance.astype(np.float64))
     inner = (slice(8, -8), slice(8, -8))
     rel = np.abs(model[inner] - expected[inner]) / np.maximum(expected[inner], 1e-12)
@@ -83,7 +92,9 @@ def test_still_scene_deblur_invents_no_motion():
 def test_still_scene_data_only_solution_is_hdr_static():
     cap = _capture("none")
     static = hdr_static(cap)
-    img, _ = deblur(cap, "vet", options=JointOptions(lam=0.0, use_measure=False, update_motion=False))
+    img, _ = deblur(
+        cap, "vet", options=JointOptions(lam=0.0, use_measure=False, update_motion=False)
+    )
     d = np.abs(np.log2(np.maximum(img.radiance, 1e-30) / np.maximum(static.radiance, 1e-30)))
     assert np.median(d) < 0.01
 
@@ -91,7 +102,9 @@ def test_still_scene_data_only_solution_is_hdr_static():
 def test_deblur_with_true_motion_beats_hdr_static_in_the_dark():
     cap = _capture("translate:30,0", 128, 96)
     static = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, cap.rig.frame_s)
-    img, _ = deblur(cap, "vet", motion_init="truth", options=JointOptions(update_motion=False, outer=1))
+    img, _ = deblur(
+        cap, "vet", motion_init="truth", options=JointOptions(update_motion=False, outer=1)
+    )
     ours = stops_error(img.radiance, cap.truth, cap.T, cap.rig.frame_s)
     assert ours["dark"]["rms"] < 0.85 * static["dark"]["rms"]
     assert img.meta["method"] == "vet-deblur"
@@ -113,6 +126,8 @@ def test_deblur_refuses_comparison_captures():
     from stages.errors import InputError
 
     scene = builtin_interior(32, 24)
-    cap = simulate(scene, parse_motion("none"), RigParams(sensor_size=(32, 24)), methods=["long"])["long"]
+    cap = simulate(scene, parse_motion("none"), RigParams(sensor_size=(32, 24)), methods=["long"])[
+        "long"
+    ]
     with pytest.raises(InputError):
         deblur(cap)

@@ -18,8 +18,8 @@ occlusion) from all the measuring images and solves a noise-weighted misfit on I
 the measuring images with conjugate gradients, robust at occlusions; pixels whose
 integration path does not move keep hdr-static; --method paper
 reproduces the published method (least squares on I, Laplacian and
-histogram-intersection priors, steepest descent). --motion-init truth starts from (and,
-with the default method, keeps) the simulator's true motion: an oracle for research.
+histogram-intersection priors, steepest descent). --motion-init truth uses the
+simulator's true motion: an oracle for research.
 Output is float32 EXR in the units of hdr-static, with its mask and T.
 
 \b
@@ -41,9 +41,10 @@ Example:
 )
 @click.option(
     "--motion-init",
-    type=click.Choice(["farneback", "dis", "truth", "zero"]),
+    type=click.Choice(["layers", "farneback", "dis", "truth", "zero"]),
     default=None,
-    help="Start of the motion estimate [farneback].",
+    help="Motion estimate: layered (default for --method vet), dense Farnebäck (default for "
+    "--method paper) or DIS flow, the simulator's truth, or none.",
 )
 @click.option(
     "--motion-out",

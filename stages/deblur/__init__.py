@@ -3,9 +3,12 @@
 Two methods share the forward model of :mod:`stages.deblur.operator`:
 
 ``vet`` (default, :mod:`stages.deblur.joint`)
-    Noise-weighted (Poisson-Gaussian) misfit on the VET image and the measuring bins,
-    alternating conjugate-gradient image solves and Gauss-Newton motion updates, robust
-    (reweighted) at occlusion boundaries.
+    Layered motion (still background and translating layers, with occlusion) estimated
+    from all the measuring bins (:mod:`stages.deblur.layers`); noise-weighted
+    (Poisson-Gaussian) misfit on the VET image and the measuring bins, conjugate-gradient
+    image solves with iteratively reweighted robust weights, an edge-preserving relative
+    prior; only pixels whose integration path moves are re-estimated, the rest keep
+    hdr-static (their maximum-likelihood value).
 ``paper`` (:mod:`stages.deblur.paper`)
     The published method of Uda et al. (2016): least-squares misfit on I, Laplacian
     smoothness on the image and on both motion components, a histogram-intersection prior
@@ -33,7 +36,7 @@ from ..hdr_static import hdr_static, rate_to_output_units
 log = logging.getLogger(__name__)
 
 METHODS = ("vet", "paper")
-MOTION_INITS = ("farneback", "dis", "truth", "zero")
+MOTION_INITS = ("layers", "farneback", "dis", "truth", "zero")
 
 
 def output_to_rate(cap: Capture, radiance: np.ndarray) -> np.ndarray:
@@ -45,21 +48,34 @@ def output_to_rate(cap: Capture, radiance: np.ndarray) -> np.ndarray:
 
 
 def initial_motion(cap: Capture, motion_init: str) -> np.ndarray:
-    """Start velocity field (H, W, 2) px/s: optical flow, the stored truth, or zero."""
+    """Start velocity field (H, W, 2) px/s.
+
+    ``layers``: the layered estimate of :mod:`stages.deblur.layers` (a still background
+    and rigidly translating layers, from long-baseline flow pooled over all measuring
+    bins); ``farneback``/``dis``: dense flow between bins (:func:`stages.flow.estimate_velocity`);
+    ``truth``: the simulator's true motion; ``zero``: none. Flow-based starts are zero when
+    the measuring bins pass the still-scene test of :func:`stages.flow.moving_mask`.
+    """
     if motion_init == "truth":
         if cap.truth_motion is None:
             raise InputError("--motion-init truth needs a simulated capture with its true motion")
         return cap.truth_motion.astype(np.float32)
     if motion_init == "zero":
         return np.zeros((*cap.shape, 2), np.float32)
-    if motion_init not in ("farneback", "dis"):
-        raise InputError(f"unknown motion initialisation {motion_init!r}; choose from {', '.join(MOTION_INITS)}")
+    if motion_init not in ("layers", "farneback", "dis"):
+        raise InputError(
+            f"unknown motion initialisation {motion_init!r}; choose from {', '.join(MOTION_INITS)}"
+        )
     from ..flow import estimate_velocity, moving_mask
 
-    vel, _conf = estimate_velocity(cap, motion_init)
     moving = moving_mask(cap)
     if moving.mean() < 0.01:  # the bins agree with a still scene: no motion to find
-        return np.zeros_like(vel)
+        return np.zeros((*cap.shape, 2), np.float32)
+    if motion_init == "layers":
+        from .layers import estimate_layers
+
+        return estimate_layers(cap).velocity
+    vel, _conf = estimate_velocity(cap, motion_init)
     return suppress_small_motion(vel)
 
 
@@ -93,8 +109,9 @@ def deblur(
         estimation, measuring images.
     method : {'vet', 'paper'}
         The default joint method or the published one.
-    motion_init : {'farneback', 'dis', 'truth', 'zero'}, optional
-        Where the motion starts; default Farnebäck (the paper's choice).
+    motion_init : {'layers', 'farneback', 'dis', 'truth', 'zero'}, optional
+        Where the motion starts; default ``layers`` for the default method and Farnebäck
+        (the paper's choice) for the published one.
     progress : callable, optional
         ``progress(done, total)``.
     options : JointOptions or PaperOptions, optional
@@ -114,7 +131,7 @@ def deblur(
         raise InputError(f"unknown deblur method {method!r}; choose from {', '.join(METHODS)}")
     if cap.method != "vet":
         raise InputError(f"deblur needs a VET capture, not a {cap.method!r} one")
-    motion_init = motion_init or "farneback"
+    motion_init = motion_init or ("layers" if method == "vet" else "farneback")
     t_start = time.perf_counter()
     static = hdr_static(cap)
     L_init = output_to_rate(cap, static.radiance).astype(np.float32)
@@ -126,12 +143,22 @@ def deblur(
         from .joint import JointOptions, deblur_joint
         from .problem import observations
 
-        moving = bool(np.any(vel0 != 0))
-        opts = options if options is not None else JointOptions(update_motion=motion_init != "truth" and moving)
+        opts = options if options is not None else JointOptions()
         obs = observations(cap, use_measure=opts.use_measure)
-        L, vel = deblur_joint(obs, L_init, vel0, cap.T, tf, rig.subframe_s, rig.leakage, saturated,
-                              opts, progress=progress, truth_cb=truth_cb,
-                              still=~np.any(vel0 != 0, axis=2) if motion_init != "truth" else None)
+        L, vel = deblur_joint(
+            obs,
+            L_init,
+            vel0,
+            cap.T,
+            tf,
+            rig.subframe_s,
+            rig.leakage,
+            saturated,
+            opts,
+            progress=progress,
+            truth_cb=truth_cb,
+            still=~np.any(vel0 != 0, axis=2) if motion_init != "truth" else None,
+        )
         name = "vet-deblur"
     else:
         from .paper import PaperOptions, deblur_paper
@@ -139,8 +166,20 @@ def deblur(
 
         opts = options if options is not None else PaperOptions()
         obs = observations(cap, use_measure=False)
-        L, vel = deblur_paper(obs, L_init, vel0, cap.T, tf, rig.subframe_s, rig.leakage, static,
-                              saturated, opts, progress=progress, truth_cb=truth_cb)
+        L, vel = deblur_paper(
+            obs,
+            L_init,
+            vel0,
+            cap.T,
+            tf,
+            rig.subframe_s,
+            rig.leakage,
+            static,
+            saturated,
+            opts,
+            progress=progress,
+            truth_cb=truth_cb,
+        )
         name = "vet-deblur-paper"
     # Pixels hdr-static could only bound keep its value (the deblur has no data there).
     L = np.where(saturated[..., None], np.maximum(L, L_init), L)
@@ -154,5 +193,10 @@ def deblur(
         + [provenance_entry("deblur", method=method, motion_init=motion_init)],
     )
     meta["units"] = units
-    return HDRImage(radiance=radiance.astype(np.float32), channels=list(cap.channels), meta=meta,
-                    mask=static.mask, exposure_time=cap.T), vel
+    return HDRImage(
+        radiance=radiance.astype(np.float32),
+        channels=list(cap.channels),
+        meta=meta,
+        mask=static.mask,
+        exposure_time=cap.T,
+    ), vel

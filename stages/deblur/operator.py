@@ -19,6 +19,20 @@ group by its mean position, an error far below the bilinear interpolation's.
 ``L0`` is sampled bilinearly, with coordinates reflected at the image border
 (OpenCV's ``BORDER_REFLECT``, as the simulator renders translations).
 
+Layered motion with occlusion. A velocity field with only a few distinct values (at
+most :data:`MAX_LAYERS`: a global translation, a still background with moving objects,
+the layered estimate of :mod:`stages.deblur.layers`, or the simulator's true motion) is
+read as **layers on the t = 0 grid**: the scene point ``y`` of layer ``k`` (``label(y) =
+k``) is at ``y + v_k t`` at time ``t``. A pixel ``x`` then sees, at each sample time, the
+front-most layer that covers it, ``k`` such that ``label(x - v_k t) = k`` (moving layers
+smaller in front of larger; a layer does not cover a pixel from outside the image), and
+the background layer (the largest, reflected at the border like a global translation)
+where none does. This models occlusion and
+disocclusion exactly where a per-pixel constant velocity cannot: a still pixel that an
+object passes over integrates the object while it is covered, and the pixels an object
+uncovers show the background. A field with many distinct values (dense optical flow)
+keeps the per-pixel reading ``L0(x - u(x) t)``.
+
 The operator is a :class:`scipy.sparse.csr_matrix` of shape ``(H W, H W)`` (rows:
 observed pixels, columns: pixels of ``L0``) built once per motion estimate; its adjoint
 is the transpose, exact by construction. Several channels share it.
@@ -33,7 +47,51 @@ import numpy as np
 import scipy.sparse as sp
 
 #: Pixels per chunk while assembling a matrix (bounds the temporary memory).
-CHUNK_PIXELS = 1 << 16
+CHUNK_PIXELS = 1 << 14
+
+#: A velocity field with at most this many distinct values is read as layers.
+MAX_LAYERS = 8
+
+
+@dataclass
+class Layers:
+    """A velocity field as layers on the t = 0 grid (see the module docstring).
+
+    Attributes
+    ----------
+    label : ndarray of shape (H, W), int32
+        Layer of each scene point at t = 0.
+    velocity : ndarray of shape (K, 2), float64
+        Velocity of each layer, px/s.
+    front : list of int
+        Layers tested front to back (every layer but the background).
+    background : int
+        The layer seen where no other one covers a pixel.
+    """
+
+    label: np.ndarray
+    velocity: np.ndarray
+    front: list[int]
+    background: int
+
+
+def motion_layers(velocity: np.ndarray, max_layers: int = MAX_LAYERS) -> Layers | None:
+    """Read a velocity field with few distinct values as :class:`Layers`, else None."""
+    h, w = velocity.shape[:2]
+    flat = np.ascontiguousarray(velocity.reshape(-1, 2), np.float32)
+    first = flat[0]
+    if np.all(flat == first):
+        return Layers(np.zeros((h, w), np.int32), first.astype(np.float64)[None], [], 0)
+    # Distinct values without sorting the whole field when there are many.
+    sample = np.unique(flat[:: max(1, flat.shape[0] // 4096)], axis=0)
+    if len(sample) > max_layers:
+        return None
+    vals, inv, counts = np.unique(flat, axis=0, return_inverse=True, return_counts=True)
+    if len(vals) > max_layers:
+        return None
+    bg = int(np.argmax(counts))
+    front = [int(k) for k in np.argsort(counts, kind="stable") if k != bg]
+    return Layers(inv.reshape(h, w).astype(np.int32), vals.astype(np.float64), front, bg)
 
 
 @dataclass
@@ -62,7 +120,9 @@ def _reflect(i: np.ndarray, n: int) -> np.ndarray:
     return np.where(i >= n, period - 1 - i, i)
 
 
-def vet_windows(T: np.ndarray, frame_s: float, subframe_s: float, n_subframes: int, leakage: float) -> list[Window]:
+def vet_windows(
+    T: np.ndarray, frame_s: float, subframe_s: float, n_subframes: int, leakage: float
+) -> list[Window]:
     """Exposure windows of the VET sensor: open until ``T``, leaking after it.
 
     The tail after the last whole subframe is its own window so that its sample sits at
@@ -110,7 +170,12 @@ def blur_matrix(
     h, w = velocity.shape[:2]
     n = h * w
     vel = velocity.reshape(n, 2).astype(np.float64)
-    speed = np.hypot(vel[:, 0], vel[:, 1])
+    layers = motion_layers(velocity)
+    if layers is not None and len(layers.velocity) > 1:
+        # Samples along the fastest layer's path: any layer may cover the pixel.
+        speed = np.full(n, float(np.hypot(layers.velocity[:, 0], layers.velocity[:, 1]).max()))
+    else:
+        speed = np.hypot(vel[:, 0], vel[:, 1])
     wins = []
     for win in windows:
         a = np.broadcast_to(np.asarray(win.start, np.float64), (h, w)).ravel()
@@ -144,8 +209,11 @@ def blur_matrix(
             t = a[pix] + (k + 0.5) * dt
             weight = wt[pix] * dt
             py, px = np.divmod(pix, w)
-            x = px - vel[pix, 0] * t
-            y = py - vel[pix, 1] * t
+            if layers is not None and len(layers.velocity) > 1:
+                x, y = _layered_positions(layers, px, py, t, h, w)
+            else:
+                x = px - vel[pix, 0] * t
+                y = py - vel[pix, 1] * t
             x0 = np.floor(x)
             y0 = np.floor(y)
             fx = x - x0
@@ -178,9 +246,46 @@ def blur_matrix(
             indptr_parts.append(np.full(c1 - c0, nnz, np.int64))
     indptr = np.concatenate(indptr_parts)
     itype = np.int32 if nnz < 2**31 - 1 else np.int64
-    indices = np.concatenate(idx_parts).astype(itype, copy=False) if idx_parts else np.zeros(0, itype)
+    indices = (
+        np.concatenate(idx_parts).astype(itype, copy=False) if idx_parts else np.zeros(0, itype)
+    )
     data = np.concatenate(dat_parts) if dat_parts else np.zeros(0, np.float32)
     return sp.csr_matrix((data, indices, indptr.astype(itype)), shape=(n, n))
+
+
+def _layered_positions(
+    layers: Layers, px: np.ndarray, py: np.ndarray, t: np.ndarray, h: int, w: int
+):
+    """Scene positions seen by pixels ``(px, py)`` at times ``t``: front-most covering layer."""
+    vb = layers.velocity[layers.background]
+    x = px - vb[0] * t
+    y = py - vb[1] * t
+    done = np.zeros(px.shape, bool)
+    for k in layers.front:
+        vx, vy = layers.velocity[k]
+        xk = px - vx * t
+        yk = py - vy * t
+        ix = np.floor(xk + 0.5).astype(np.int64)
+        iy = np.floor(yk + 0.5).astype(np.int64)
+        inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+        hit = ~done & inside & (layers.label[np.clip(iy, 0, h - 1), np.clip(ix, 0, w - 1)] == k)
+        x = np.where(hit, xk, x)
+        y = np.where(hit, yk, y)
+        done |= hit
+    return x, y
+
+
+def static_rows(A: sp.csr_matrix) -> np.ndarray:
+    """Rows of ``A`` that see only their own pixel (a still integration path), bool (N,)."""
+    n_rows = A.shape[0]
+    nnz = np.diff(A.indptr)
+    out = nnz == 0
+    one = nnz == 1
+    rows = np.arange(n_rows)
+    cols = np.zeros(n_rows, np.int64)
+    cols[one] = A.indices[A.indptr[:-1][one]]
+    out |= one & (cols == rows % A.shape[1])
+    return out
 
 
 def apply(A: sp.csr_matrix, image: np.ndarray) -> np.ndarray:
@@ -195,9 +300,7 @@ def apply_adjoint(A: sp.csr_matrix, image: np.ndarray) -> np.ndarray:
     return np.asarray(A.T @ image.reshape(h * w, c)).reshape(h, w, c)
 
 
-def sample_trajectories(
-    image: np.ndarray, velocity: np.ndarray, times: np.ndarray
-) -> np.ndarray:
+def sample_trajectories(image: np.ndarray, velocity: np.ndarray, times: np.ndarray) -> np.ndarray:
     """Matrix-free gather: ``image(x - u(x) t)`` for each time in ``times``.
 
     Parameters

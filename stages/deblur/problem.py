@@ -62,7 +62,12 @@ def observations(cap: Capture, use_measure: bool = True) -> Observations:
     wins = vet_windows(cap.T, tf, rig.subframe_s, rig.n_subframes, rig.leakage)
     yb = wb = None
     wins_b: list[list[Window]] = []
-    if use_measure and cap.measure is not None and cap.measure_times is not None and cap.measure.shape[0] > 0:
+    if (
+        use_measure
+        and cap.measure is not None
+        and cap.measure_times is not None
+        and cap.measure.shape[0] > 0
+    ):
         nb = cap.measure.shape[0]
         dur = np.diff(cap.measure_times, axis=1)[:, 0]
         n_sub = np.maximum(np.rint(dur / rig.subframe_s), 1)
@@ -80,16 +85,73 @@ def observations(cap: Capture, use_measure: bool = True) -> Observations:
     return Observations((h, w, c), y.reshape(h * w, c), wt.reshape(h * w, c), wins, yb, wb, wins_b)
 
 
+class StackedOperator:
+    """Operators of several images sharing the unknown (the measuring bins), kept apart.
+
+    Behaves as their vertical stack for the few products the solvers need, without the
+    copy (and the transient doubling of memory) that assembling the stack would cost.
+    """
+
+    def __init__(self, parts: list[sp.csr_matrix]):
+        self.parts = parts
+        self.parts_t = [M.T for M in parts]  # transposed views, made once
+        self.rows = parts[0].shape[0]
+        self.shape = (self.rows * len(parts), parts[0].shape[1])
+
+    def mv(self, x: np.ndarray) -> np.ndarray:
+        """``stack @ x`` for ``x`` of shape (N, C), float64 result (B N, C)."""
+        x32 = x.astype(np.float32)
+        return np.concatenate([np.asarray(M @ x32, dtype=np.float64) for M in self.parts])
+
+    def mvt(self, r: np.ndarray) -> np.ndarray:
+        """``stack.T @ r`` for ``r`` of shape (B N, C)."""
+        out = None
+        for b, MT in enumerate(self.parts_t):
+            part = np.asarray(
+                MT @ r[b * self.rows : (b + 1) * self.rows].astype(np.float32), dtype=np.float64
+            )
+            out = part if out is None else out + part
+        return out
+
+    def diag_normal(self, w: np.ndarray) -> np.ndarray:
+        """Diagonal of ``stack.T diag(w) stack`` (w of shape (B N, C))."""
+        out = None
+        for b, M in enumerate(self.parts):
+            part = diag_normal(M, w[b * self.rows : (b + 1) * self.rows])
+            out = part if out is None else out + part
+        return out
+
+
+def diag_normal(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
+    """Diagonal of ``A.T diag(w) A``, ``w`` of shape (N, C): ``sum_r w_r A_rc^2``.
+
+    Squares the stored values into a matrix that shares ``A``'s index arrays (no
+    index matching, unlike ``A.multiply(A)``).
+    """
+    A2 = sp.csr_matrix((np.square(A.data), A.indices, A.indptr), shape=A.shape, copy=False)
+    return np.asarray(A2.T @ w.astype(np.float32), dtype=np.float64)
+
+
 def build_operators(
-    obs: Observations, velocity: np.ndarray, step_px: float = 1.0, step_px_bins: float = 1.5,
+    obs: Observations,
+    velocity: np.ndarray,
+    step_px: float = 1.0,
+    step_px_bins: float = 1.5,
     subframe_s: float | None = None,
-) -> tuple[sp.csr_matrix, sp.csr_matrix | None]:
-    """Blur operators of the VET image and of the stacked measuring bins for a motion."""
-    A = blur_matrix(velocity, obs.windows, step_px=step_px, min_dt=subframe_s)
-    Ab = None
-    if obs.yb is not None:
-        Ab = sp.vstack([blur_matrix(velocity, wins, step_px=step_px_bins, min_dt=subframe_s)
-                        for wins in obs.windows_b], format="csr")
+) -> tuple[sp.csr_matrix, StackedOperator | None]:
+    """Blur operators of the VET image and of the measuring bins for a motion."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    jobs = [(obs.windows, step_px)] + [
+        (wins, step_px_bins) for wins in (obs.windows_b if obs.yb is not None else [])
+    ]
+    # Two threads: the assembly is numpy work that mostly releases the GIL.
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        mats = list(
+            pool.map(lambda j: blur_matrix(velocity, j[0], step_px=j[1], min_dt=subframe_s), jobs)
+        )
+    A = mats[0]
+    Ab = StackedOperator(mats[1:]) if len(mats) > 1 else None
     return A, Ab
 
 
@@ -126,6 +188,7 @@ def pcg(
     iters: int,
     tol: float = 1e-6,
     callback: Callable[[int, np.ndarray], None] | None = None,
+    free: np.ndarray | None = None,
 ) -> np.ndarray:
     """Jacobi-preconditioned conjugate gradients, each column an independent system.
 
@@ -140,10 +203,16 @@ def pcg(
         Iterations.
     tol : float
         Stop when every column's residual norm falls below ``tol`` times its start.
+    free : ndarray of shape (N,), bool, optional
+        Only these unknowns change (the others keep ``x0``): the system solved is ``H``
+        restricted to them, with the fixed ones' contribution on the right-hand side.
     """
     x = x0.copy()
     r = b - apply_h(x)
     minv = 1.0 / np.maximum(diag, 1e-300)
+    if free is not None:
+        minv = minv * free.reshape(-1, 1)
+        r = r * free.reshape(-1, 1)
     z = minv * r
     p = z.copy()
     rz = np.sum(r * z, axis=0)
@@ -154,6 +223,8 @@ def pcg(
         alpha = np.where(php > 0, rz / np.where(php > 0, php, 1), 0.0)
         x += alpha * p
         r -= alpha * hp
+        if free is not None:
+            r *= free.reshape(-1, 1)
         if callback is not None:
             callback(k, x)
         if np.all(np.sqrt(np.sum(r * r, axis=0)) < tol * r0):

@@ -1,0 +1,421 @@
+"""Layered motion estimation from the measuring images.
+
+The motion model of the deblur is a few rigid layers, each translating at a constant
+velocity over the 1 s frame (a still background, moving objects, or one global
+translation): see :class:`stages.deblur.operator.Layers`. Dense optical flow between two
+short, noisy measuring bins gives a noisy per-pixel velocity in the dark, and the
+deblur's accuracy is limited by it; a layered model pools every pixel of a layer into
+two numbers, so it is far more accurate where the model holds. The estimate:
+
+1. **Long baselines.** Optical flow (Farnebäck or DIS) from the first measuring bin to
+   every later bin, on the log-compressed, equalised bins of :mod:`stages.flow`; each
+   flow is a displacement ``u (c_b - c_0)`` (``c_b`` the bin centres), so a per-pixel
+   velocity is the least-squares fit of displacement against time over all pairs (long
+   baselines dominate, as they should: their displacement is least affected by the flow's
+   fixed error). A pixel's confidence is its signal-to-noise ratio times texture times
+   the agreement of the pairs.
+2. **Modes.** The confident velocities vote in a 2-D histogram (0.5 px/s cells); its
+   peaks are the candidate layer velocities (a peak must hold a minimum share of the
+   confident pixels); zero velocity is always a candidate.
+3. **Refinement.** Each candidate's velocity is refined to sub-pixel-per-second
+   precision by maximising the agreement of the motion-compensated bins (every bin
+   sampled at ``y + v c_b`` should show the same scene point ``y``) over the pixels that
+   voted for it, weighted by their signal-to-noise ratio (coarse-to-fine grid search).
+4. **Assignment.** Each scene point at t = 0 takes the moving layer with the most
+   evidence that the pixels along its path show it (:func:`_track_score`, a likelihood
+   ratio against stillness pooled over a small neighbourhood); points without clear
+   evidence (:data:`EVIDENCE_NATS`) take a default layer (the still one if the scene
+   has clearly still parts, else the moving layer most points clearly follow: a global
+   motion); the label map is then cleaned with a median filter. A
+   layer slower than :data:`MIN_SPEED_PX_S` is still; one that keeps under 1% of the
+   points is merged into the largest.
+
+The result is a velocity field with a handful of distinct values that
+:func:`stages.deblur.operator.blur_matrix` reads as layers with occlusion.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..formats.capture import Capture
+
+log = logging.getLogger(__name__)
+
+#: Layers slower than this (px/s: under one pixel of travel in a 1 s frame) are still.
+MIN_SPEED_PX_S = 1.0
+#: A mode must gather this share of the confident pixels to become a layer.
+MIN_MODE_SHARE = 0.04
+#: At most this many moving layers.
+MAX_MOVING_LAYERS = 3
+#: Log-likelihood ratio (nats) a point needs to leave the default layer.
+EVIDENCE_NATS = 3.0
+#: Estimation runs on images no larger than this (longer side, pixels).
+MAX_WORK_PX = 400
+
+
+@dataclass
+class LayerEstimate:
+    """Output of :func:`estimate_layers`."""
+
+    velocity: np.ndarray  # (H, W, 2) px/s, few distinct values
+    layer_velocities: np.ndarray  # (K, 2)
+    label: np.ndarray  # (H, W) int
+    dense: np.ndarray  # (H, W, 2) the per-pixel long-baseline fit
+    confidence: np.ndarray  # (H, W)
+
+
+def _work_frames(cap: Capture, max_px: int = MAX_WORK_PX):
+    """Log-rate bins (float), their noise in log units, validity, at a working scale."""
+    import cv2
+
+    from ..flow import measure_rates
+
+    rate, sigma, valid = measure_rates(cap)
+    nb, h, w = rate.shape[:3]
+    lum = rate.mean(axis=3)
+    noise = sigma.mean(axis=3) / np.sqrt(rate.shape[3])
+    scale = min(1.0, max_px / max(h, w))
+    if scale < 1.0:
+        size = (max(8, int(round(w * scale))), max(8, int(round(h * scale))))
+        lum = np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in lum])
+        noise = np.stack(
+            [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in noise]
+        ) * np.float32(scale)
+        valid = np.stack(
+            [
+                cv2.resize(v.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.999
+                for v in valid
+            ]
+        )
+        scale_xy = (size[0] / w, size[1] / h)
+    else:
+        scale_xy = (1.0, 1.0)
+    floor = np.median(noise, axis=0)
+    pos = np.maximum(lum, 0) + floor
+    lv = np.log(pos).astype(np.float32)
+    # Noise of the log rate (first order), floored so that very bright pixels do not get
+    # infinite weight (flow and interpolation errors dominate there).
+    slv = np.maximum(noise / pos, 0.02).astype(np.float32)
+    return lv, slv, valid, scale_xy
+
+
+def _equalise_all(lv: np.ndarray) -> list[np.ndarray]:
+    import cv2
+
+    from ..flow import _equalise
+
+    sample = lv[:, ::2, ::2].ravel()
+    levels = np.unique(np.quantile(sample, np.linspace(0, 1, 257)))
+    if len(levels) < 2:
+        levels = np.array([float(sample.min()), float(sample.min()) + 1.0])
+    return [_equalise(cv2.GaussianBlur(f, (0, 0), 1.0), levels) for f in lv]
+
+
+def _compensated(
+    lv: np.ndarray, v: np.ndarray, centres: np.ndarray, nearest: bool = False
+) -> np.ndarray:
+    """Bins resampled at ``y + v c_b`` (the scene point ``y`` of t = 0 in each bin).
+
+    ``nearest``: no interpolation, so the noise of the resampled bins does not depend on
+    ``v`` (bilinear interpolation averages noise down at fractional shifts, which would
+    favour moving layers in noise-dominated regions).
+    """
+    import cv2
+
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    nb, h, w = lv.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    out = np.empty_like(lv)
+    for b in range(nb):
+        out[b] = cv2.remap(
+            lv[b],
+            xx + np.float32(v[0] * centres[b]),
+            yy + np.float32(v[1] * centres[b]),
+            interp,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+    return out
+
+
+def _inside(v: np.ndarray, centres: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Per bin, the scene points whose compensated position lies in the image, (B, H, W)."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    ok = np.empty((len(centres), h, w), bool)
+    for b, c in enumerate(centres):
+        x = xx + v[0] * c
+        y = yy + v[1] * c
+        ok[b] = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    return ok
+
+
+def _track_score(lv, slv, v, centres, trunc=9.0):
+    """Evidence (per bin, log-likelihood ratio) that a scene point at t = 0 moves with ``v``.
+
+    Follow the point ``y`` of t = 0 along ``v``: in bin ``b`` the pixel ``x = y + v c_b``
+    shows, if ``y`` moves with ``v``, the point ``y`` (its appearance in the first bin, at
+    ``y + v c_0``); if ``y`` is still, the pixel ``x`` is not on its path and keeps showing
+    what it showed in the first bin. Both hypotheses predict the same observation, so the
+    difference of their noise-normalised, truncated squared residuals is the evidence.
+    The test is local and needs no knowledge of the other points' layers: a background
+    point that an object covers later scores still (the pixels ahead of it do not change),
+    an object point scores moving even where the object uncovers its own position.
+    Bins in which the path has left the image give no evidence (0).
+    """
+    comp = _compensated(lv, v, centres, True)
+    sig = _compensated(slv, v, centres, True)
+    first = _compensated(np.broadcast_to(lv[0], lv.shape), v, centres, True)
+    sfirst = _compensated(np.broadcast_to(slv[0], slv.shape), v, centres, True)
+    h, w = lv.shape[1:]
+    ins = _inside(v, centres, h, w)
+    moving = np.minimum((comp[1:] - comp[0]) ** 2 / (sig[1:] ** 2 + sig[0] ** 2), trunc)
+    still = np.minimum((comp[1:] - first[1:]) ** 2 / (sig[1:] ** 2 + sfirst[1:] ** 2), trunc)
+    ok = ins[1:] & ins[0]
+    return np.where(ok, still - moving, 0.0).mean(axis=0).astype(np.float32)
+
+
+def _layer_cost(lv, slv, v, centres, trunc=9.0, nearest=True):
+    """Per-point truncated chi-square of the compensated bins about their median, per bin.
+
+    Only the bins in which the point is still inside the image are evidence; each bin in
+    which it has left the image counts as a consistent one (cost 1, the expectation of a
+    chi-square term), so that a layer gains nothing from points it moves off the image.
+    """
+    comp = _compensated(lv, v, centres, nearest)
+    sig = _compensated(slv, v, centres, nearest)
+    h, w = lv.shape[1:]
+    ins = _inside(v, centres, h, w)
+    if ins.all():
+        med = np.median(comp, axis=0)
+    else:
+        with np.errstate(all="ignore"):
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                med = np.nan_to_num(np.nanmedian(np.where(ins, comp, np.nan), axis=0))
+    z2 = np.minimum(((comp - med[None]) / sig) ** 2, trunc)
+    cost = np.where(ins, z2, 1.0).mean(axis=0)
+    return cost.astype(np.float32)
+
+
+def _refine(
+    lv, slv, v0, centres, weight, steps=(1.0, 0.5, 0.25, 0.125, 0.0625), max_moves=8
+) -> np.ndarray:
+    """Pattern search for the velocity that best aligns the motion-compensated bins.
+
+    The cost (:func:`_layer_cost`, averaged with ``weight``) is evaluated on the 3 x 3
+    neighbours of the current velocity at each step size, moving to the best until the
+    centre is best (at most ``max_moves`` moves), then halving the step. Only the
+    bounding box of the weighted points is resampled.
+    """
+    v = np.asarray(v0, np.float64)
+    if weight.sum() <= 0:
+        return v
+    ys, xs = np.nonzero(weight > 0)
+    pad = int(np.ceil(np.hypot(*v) * float(np.max(centres)))) + 8
+    h, w = weight.shape
+    y0, y1 = max(0, ys.min() - pad), min(h, ys.max() + pad + 1)
+    x0, x1 = max(0, xs.min() - pad), min(w, xs.max() + pad + 1)
+    lv_c, slv_c, wt_c = lv[:, y0:y1, x0:x1], slv[:, y0:y1, x0:x1], weight[y0:y1, x0:x1]
+    total = float(wt_c.sum())
+    cache: dict[tuple[float, float], float] = {}
+
+    def cost(c: np.ndarray) -> float:
+        key = (round(float(c[0]), 6), round(float(c[1]), 6))
+        if key not in cache:
+            cache[key] = float(
+                (_layer_cost(lv_c, slv_c, c, centres, trunc=25.0, nearest=False) * wt_c).sum()
+                / total
+            )
+        return cache[key]
+
+    grid = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
+    for st in steps:
+        for _ in range(max_moves):
+            vals = [cost(v + st * np.array(d)) for d in grid]
+            dx, dy = grid[int(np.argmin(vals))]
+            if dx == 0 and dy == 0:
+                break
+            v = v + st * np.array([dx, dy])
+    return v
+
+
+def dense_long_baseline(lv: np.ndarray, slv: np.ndarray, centres: np.ndarray, method: str = "dis"):
+    """Velocity votes from flows over long baselines, and a per-pixel least-squares fit.
+
+    Flows run from the first bin to every later one and from every bin to the last (in
+    the earlier bin's coordinates). Returns ``votes`` (P, H, W, 2) px/s with weights
+    ``(P, H, W)`` (confidence times baseline), the per-pixel fit of the flows from the
+    first bin (H, W, 2), and the per-pixel confidence (H, W).
+    """
+    import cv2
+
+    from ..flow import _flow_pair
+
+    frames = _equalise_all(lv)
+    nb, h, w = lv.shape
+    pairs = [(0, b) for b in range(1, nb)] + [(b, nb - 1) for b in range(1, nb - 1)]
+    snr = 1.0 / np.median(slv, axis=0)
+    base = lv.mean(axis=0).astype(np.float32)
+    gx = cv2.Sobel(base, cv2.CV_32F, 1, 0)
+    gy = cv2.Sobel(base, cv2.CV_32F, 0, 1)
+    texture = np.hypot(gx, gy)
+    conf = ((snr / (snr + 5.0)) * (texture / (texture + 0.2))).astype(np.float32)
+    votes = np.empty((len(pairs), h, w, 2), np.float32)
+    wts = np.empty((len(pairs), h, w), np.float32)
+    for i, (a, b) in enumerate(pairs):
+        dt = float(centres[b] - centres[a])
+        votes[i] = _flow_pair(frames[a], frames[b], method) / np.float32(dt)
+        wts[i] = conf * np.float32(dt)
+    first = votes[: nb - 1]
+    dts = (centres[1:] - centres[0]).reshape(-1, 1, 1, 1)
+    vel = (first * dts**2).sum(axis=0) / float(np.sum(dts**2))
+    spread = np.sqrt(np.median(np.sum((votes - vel[None]) ** 2, axis=3), axis=0))
+    conf = conf / (1.0 + spread / 2.0)
+    return votes, wts, vel.astype(np.float32), conf.astype(np.float32)
+
+
+def _modes(votes: np.ndarray, wts: np.ndarray, cell: float = 0.5) -> list[np.ndarray]:
+    """Peaks of the weighted histogram of velocity votes."""
+    import cv2
+
+    sel = wts > np.percentile(wts, 50)
+    u = votes[sel]
+    c = wts[sel]
+    if u.size == 0:
+        return []
+    vmax = float(np.percentile(np.abs(u), 99.5)) + 4.0
+    nbin = int(np.ceil(2 * vmax / cell)) + 1
+    edges = np.linspace(-vmax, vmax, nbin + 1)
+    hist, _, _ = np.histogram2d(u[:, 0], u[:, 1], bins=[edges, edges], weights=c)
+    hist = cv2.GaussianBlur(hist.astype(np.float32), (0, 0), 1.5)
+    total = float(hist.sum())
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    out = []
+    radius = max(2, int(round(3.0 / cell)))
+    for _ in range(MAX_MOVING_LAYERS + 1):
+        i, j = np.unravel_index(int(np.argmax(hist)), hist.shape)
+        lo_i, hi_i = max(0, i - radius), i + radius + 1
+        lo_j, hi_j = max(0, j - radius), j + radius + 1
+        mass = float(hist[lo_i:hi_i, lo_j:hi_j].sum())
+        if total <= 0 or mass < MIN_MODE_SHARE * total:
+            break
+        out.append(np.array([centres[i], centres[j]]))
+        hist[lo_i:hi_i, lo_j:hi_j] = 0
+    return out
+
+
+def _assign(
+    lv: np.ndarray, slv: np.ndarray, cands: list[np.ndarray], centres: np.ndarray
+) -> np.ndarray:
+    """Label map of the scene points at t = 0 over the candidate layers (step 4)."""
+    import cv2
+
+    nb, hw, ww = lv.shape
+    # Evidence for each moving layer against stillness (log-likelihood ratios),
+    # pooled over a neighbourhood. Points with no clear evidence (flat or
+    # noise-dominated) take a default layer: the still one where the scene has
+    # clearly still parts, else (a global motion) the moving layer most points
+    # clearly follow.
+    llr = np.stack(
+        [np.zeros((hw, ww), np.float32)]
+        + [
+            cv2.GaussianBlur(_track_score(lv, slv, v, centres), (0, 0), 2.0) * (0.5 * (nb - 1))
+            for v in cands[1:]
+        ]
+    )
+    best = np.argmax(llr, axis=0)
+    top = np.max(llr, axis=0)
+    second = np.partition(llr, -2, axis=0)[-2]
+    clear = (top - second) > EVIDENCE_NATS
+    counts = np.bincount(best[clear], minlength=len(cands)).astype(np.float64)
+    default = 0 if counts[0] >= 0.05 * max(counts.sum(), 1.0) else int(np.argmax(counts))
+    llr[default] += EVIDENCE_NATS
+    label = np.argmax(llr, axis=0).astype(np.int32)
+    log.debug("layers: clear evidence counts %s, default layer %d", counts.tolist(), default)
+    label = cv2.medianBlur(label.astype(np.uint8), 5).astype(np.int32)
+    # Layers that keep too few points are merged into the largest one.
+    shares = np.bincount(label.ravel(), minlength=len(cands)) / label.size
+    big = int(np.argmax(shares))
+    for k in range(len(cands)):
+        if 0 < shares[k] < 0.01:
+            label[label == k] = big
+    return label
+
+
+def estimate_layers(cap: Capture) -> LayerEstimate:
+    """Layered velocity field of a capture (see the module docstring)."""
+    import cv2
+
+    h, w = cap.shape
+    lv, slv, valid, (sx, sy) = _work_frames(cap)
+    nb, hw, ww = lv.shape
+    centres = cap.measure_times.mean(axis=1).astype(np.float64)
+    votes, wts, vel_d, conf = dense_long_baseline(lv, slv, centres)
+    ok = valid.all(axis=0)
+    conf_raw = np.median(wts, axis=0) * ok
+    conf = conf * ok
+    modes = _modes(votes, wts * ok[None])
+    # Candidates: zero plus each mode (in working-grid px/s), refined on its voters.
+    cands: list[np.ndarray] = [np.zeros(2)]
+    sel = conf > np.percentile(conf, 50)
+    for m in modes:
+        if np.hypot(*m) < MIN_SPEED_PX_S:
+            continue
+        near = np.hypot(vel_d[..., 0] - m[0], vel_d[..., 1] - m[1]) < max(
+            3.0, 0.15 * float(np.hypot(*m))
+        )
+        wgt = (conf * (near & sel)).astype(np.float64)
+        v = _refine(lv, slv, m, centres, wgt)
+        if np.hypot(*v) >= MIN_SPEED_PX_S and all(np.hypot(*(v - c)) > 1.0 for c in cands):
+            cands.append(v)
+    label = np.zeros((hw, ww), np.int32)
+    if len(cands) > 1:
+        label = _assign(lv, slv, cands, centres)
+        keep = [0] + [k for k in range(1, len(cands)) if np.any(label == k)]
+        remap = np.zeros(len(cands), np.int32)
+        remap[keep] = np.arange(len(keep))
+        cands = [cands[k] for k in keep]
+        label = remap[label]
+        # Second pass: refine each moving layer's velocity on the interior of its
+        # points (better voters than the flow's), and assign again.
+        for k in range(1, len(cands)):
+            inner = cv2.erode((label == k).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+            if inner.sum() >= 50:
+                cands[k] = _refine(
+                    lv,
+                    slv,
+                    cands[k],
+                    centres,
+                    (conf_raw * inner).astype(np.float64),
+                    steps=(0.25, 0.125, 0.0625),
+                )
+        label = _assign(lv, slv, cands, centres)
+    # Back to the full grid: nearest-neighbour labels, velocities rescaled.
+    lab_full = cv2.resize(label.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(
+        np.int32
+    )
+    used = np.unique(lab_full)
+    vels = np.array([[cands[k][0] / sx, cands[k][1] / sy] for k in used], np.float32)
+    lab_full = np.searchsorted(used, lab_full).astype(np.int32)
+    velocity = vels[lab_full]
+    dense = np.stack(
+        [cv2.resize(vel_d[..., 0] / sx, (w, h)), cv2.resize(vel_d[..., 1] / sy, (w, h))], -1
+    )
+    confidence = cv2.resize(conf, (w, h))
+    log.debug(
+        "layers: velocities %s, shares %s",
+        vels.tolist(),
+        [float((lab_full == k).mean()) for k in range(len(vels))],
+    )
+    return LayerEstimate(
+        velocity.astype(np.float32),
+        vels,
+        lab_full,
+        dense.astype(np.float32),
+        confidence.astype(np.float32),
+    )
