@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench lint format sample-data sample-hdr clean
+.PHONY: demo test test-slow bench evaluate-shared lint format sample-data sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,10 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.run
 
+# Issue 3's acceptance sweep: vet evaluate on every ../shared/data/hdr scene, two motions.
+evaluate-shared: $(STAMP)
+	$(BIN)/python -m tests.benchmarks.evaluate_shared eval_out
+
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
@@ -49,4 +53,4 @@ sample-hdr: $(STAMP)
 	$(MAKE) -f make/vet.mk VET=$(abspath $(VET)) CAPTURES=sample_data/captures OUT=sample_out vet-all
 
 clean:
-	rm -rf $(DEMO_DIR) sample_out .pytest_cache
+	rm -rf $(DEMO_DIR) sample_out eval_out .pytest_cache
