@@ -18,11 +18,17 @@ venv: $(STAMP)
 DEMO_DIR := demo_out
 demo: $(STAMP)
 	@mkdir -p $(DEMO_DIR)
-	$(VET) simulate builtin:interior --size 640x512 --seed 1 -o $(DEMO_DIR)/capture.exr
-	$(VET) hdr-static $(DEMO_DIR)/capture.exr -o $(DEMO_DIR)/hdr.exr
-	$(VET) tonemap $(DEMO_DIR)/hdr.exr -o $(DEMO_DIR)/hdr.png
-	$(VET) tonemap $(DEMO_DIR)/capture.exr --exposure-time-map -o $(DEMO_DIR)/exposure_time.png
-	@echo "demo: look at $(DEMO_DIR)/hdr.png and $(DEMO_DIR)/exposure_time.png" >&2
+	$(VET) simulate builtin:interior --size 640x512 --seed 1 -o $(DEMO_DIR)/still.exr
+	$(VET) hdr-static $(DEMO_DIR)/still.exr -o $(DEMO_DIR)/still.hdr.exr
+	$(VET) tonemap $(DEMO_DIR)/still.hdr.exr -o $(DEMO_DIR)/still.png
+	$(VET) tonemap $(DEMO_DIR)/still.exr --exposure-time-map -o $(DEMO_DIR)/exposure_time.png
+	$(VET) simulate builtin:interior --size 640x512 --seed 1 --motion translate:30,0 -o $(DEMO_DIR)/pan.exr
+	$(VET) hdr-static $(DEMO_DIR)/pan.exr -o $(DEMO_DIR)/pan.static.exr
+	$(VET) deblur $(DEMO_DIR)/pan.exr -o $(DEMO_DIR)/pan.deblur.exr --motion-picture $(DEMO_DIR)/pan.motion.png
+	$(VET) tonemap $(DEMO_DIR)/pan.static.exr -o $(DEMO_DIR)/pan.static.png
+	$(VET) tonemap $(DEMO_DIR)/pan.deblur.exr -o $(DEMO_DIR)/pan.deblur.png
+	@echo "demo: still scene: $(DEMO_DIR)/still.png and $(DEMO_DIR)/exposure_time.png;" \
+	      "panning 30 px/s: $(DEMO_DIR)/pan.static.png (I/T, blurred) vs $(DEMO_DIR)/pan.deblur.png" >&2
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
