@@ -389,90 +389,14 @@ def test_local_cluster_two_workers(tree, tmp_path):
             assert_readable(out / o)
 
 
-def _wait_for_file(path: Path, proc: subprocess.Popen, timeout: float = 60) -> None:
-    deadline = time.monotonic() + timeout
-    while not path.exists():
-        if proc.poll() is not None:
-            raise RuntimeError(f"process exited early with {proc.returncode}")
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"{path} did not appear")
-        time.sleep(0.05)
-
-
 @pytest.fixture
 def dask_cluster(tmp_path):
     """A Dask scheduler and two single-thread workers, started as separate processes on
     loopback; yields the scheduler address; everything is stopped at the end."""
-    bindir = Path(sys.executable).parent
-    sched_file = tmp_path / "scheduler.json"
-    env = dict(os.environ, PYTHONPATH=str(ROOT), DASK_DISTRIBUTED__WORKER__DAEMON="False")
-    procs: list[subprocess.Popen] = []
-    logs = open(tmp_path / "dask.log", "wb")  # noqa: SIM115 - closed in the finalizer
-    try:
-        procs.append(
-            subprocess.Popen(
-                [
-                    str(bindir / "dask"),
-                    "scheduler",
-                    "--host",
-                    "127.0.0.1",
-                    "--port",
-                    "0",
-                    "--no-dashboard",
-                    "--scheduler-file",
-                    str(sched_file),
-                ],
-                stdout=logs,
-                stderr=subprocess.STDOUT,
-                env=env,
-                cwd=tmp_path,
-            )
-        )
-        _wait_for_file(sched_file, procs[0])
-        for i in range(2):
-            procs.append(
-                subprocess.Popen(
-                    [
-                        str(bindir / "dask"),
-                        "worker",
-                        "--scheduler-file",
-                        str(sched_file),
-                        "--host",
-                        "127.0.0.1",
-                        "--nthreads",
-                        "1",
-                        "--nworkers",
-                        "1",
-                        "--no-dashboard",
-                        "--name",
-                        f"w{i}",
-                        "--death-timeout",
-                        "60",
-                    ],
-                    stdout=logs,
-                    stderr=subprocess.STDOUT,
-                    env=env,
-                    cwd=tmp_path,
-                )
-            )
-        address = json.loads(sched_file.read_text())["address"]
-        assert address.startswith("tcp://127.0.0.1:")
-        from distributed import Client
+    from tests.dask_local import separate_dask_cluster
 
-        with Client(address, timeout="30s") as c:
-            c.wait_for_workers(2, timeout=60)
+    with separate_dask_cluster(tmp_path, workers=2) as address:
         yield address
-    finally:
-        for p in reversed(procs):
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        for p in reversed(procs):
-            try:
-                p.wait(15)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-        logs.close()
 
 
 def test_separately_started_scheduler_and_two_workers(tree, tmp_path, dask_cluster):
