@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench evaluate-shared lint format sample-data sample-hdr clean
+.PHONY: demo test test-slow bench evaluate-shared batch-acceptance lint format sample-data sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -42,6 +42,11 @@ bench: $(STAMP)
 # Issue 3's acceptance sweep: vet evaluate on every ../shared/data/hdr scene, two motions.
 evaluate-shared: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.evaluate_shared eval_out
+
+# Issue 5's acceptance at full scale: 20 captures + 2 corrupt, rerun, kill -9, a separate
+# Dask scheduler with two workers, make -j2 with make/vet.mk.
+batch-acceptance: $(STAMP)
+	$(BIN)/python -m tests.benchmarks.batch_acceptance
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
