@@ -115,6 +115,7 @@ def capture_frame(
     params = rig.params
     clog = CaptureLog()
     raw = None
+    books = None
     raw_tmp = folder / ".measure_raw.npy.part"
     n_done = 0
     try:
@@ -136,6 +137,11 @@ def capture_frame(
         s0 = rig.lcos.open_all(0, wait=True)
         if rig.is_emulated:
             rig.tick(max(0, s0 - rig.emulator.subframe))
+            # From here the trigger drives the device clock in real time; the camera
+            # delivers each subframe at its end on the same clock.
+            t0 = rig.start_trigger(s0)
+            if hasattr(rig.measurement, "start_at"):
+                rig.measurement.start_at(t0)
         clog.info("frame 0 started at device subframe %d", s0)
         nch = len(rig.channels)
         edges = measure_bin_edges(k_sub, measure_bins) if measure_bins > 0 else None
@@ -149,6 +155,19 @@ def capture_frame(
             raw = np.lib.format.open_memmap(
                 raw_tmp, mode="w+", dtype=np.int16, shape=(k_sub, h, w, nch)
             )
+        # Bins and the raw stream are bookkeeping, not control: a worker thread does them
+        # (numpy releases the GIL) so the control path keeps up with the subframe clock.
+        from concurrent.futures import ThreadPoolExecutor
+
+        books = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vet-capture-books")
+        pending = []
+
+        def record_subframe(kk: int, frame_data: np.ndarray) -> None:
+            if measure is not None:
+                np.add(measure[bin_of[kk]], frame_data, out=measure[bin_of[kk]], casting="unsafe")
+            if raw is not None:
+                raw[kk] = frame_data  # integer DN in [-black level, 4095]: exact in int16
+
         stamps: list[float] = []
         dropped: list[int] = []
         step_ms: list[float] = []
@@ -179,18 +198,23 @@ def capture_frame(
                     rig.lcos.close_cells(new)
                     sent_cells += int(new.size)
                 step_ms.append((time.perf_counter() - t_start) * 1e3)
-                if measure is not None:
-                    measure[bin_of[kk]] += data
-                if raw is not None:
-                    raw[kk] = data  # integer DN in [-black level, 4095]: exact in int16
+                pending.append(books.submit(record_subframe, kk, data))
+                if len(pending) > 8:  # bounded backlog; also surfaces worker errors
+                    pending.pop(0).result()
                 stamps.append(frame.timestamp_s)
                 n_done = kk + 1
                 if progress:
                     progress(n_done, k_sub)
             k = max(k + 1, frame.index + 1)
-        # The frame's tail: no more closures; let the device clock reach the frame end.
-        rig.tick(max(0, int(np.ceil(params.frame_s / tau)) - k_sub))
+        # The frame's tail: no more closures. Wait for every acknowledgement, then let
+        # the device clock reach the frame end.
+        for f in pending:
+            f.result()
+        books.shutdown()
         rig.lcos.flush()
+        if rig.is_emulated:
+            rig.stop_trigger()
+            rig.tick(max(0, s0 + int(np.ceil(params.frame_s / tau)) - rig.emulator.subframe))
         clog.info("all %d closures acknowledged", sent_cells)
         t_cells = rig.lcos.exposure_time_s(tau, params.frame_s).astype(np.float32).ravel()
         exposure_time = cellmap.to_pixels(np.append(t_cells, np.float32(params.frame_s)))
@@ -278,6 +302,8 @@ def capture_frame(
             f"{folder} keeps what was captured and capture.log)"
         ) from None
     finally:
+        if books is not None:
+            books.shutdown(wait=True)  # writes in flight land before the stream closes
         if raw is not None:
             raw.flush()
             del raw

@@ -31,7 +31,7 @@ from ..rig import RigParams
 
 @dataclass
 class Frame:
-    data: np.ndarray  # (H, W, C) float32 DN
+    data: np.ndarray  # (H, W, C) DN: float32, or the sensor's integers
     index: int  # frame counter as reported by the source (gaps = dropped frames)
     timestamp_s: float
 
@@ -238,6 +238,11 @@ class EmulatedMeasurementCamera(Camera):
                 for k, frame in enumerate(ex.map(self.render, range(k_sub))):
                     self._frames[k] = frame
 
+    def start_at(self, t0: float | None) -> None:
+        """Pace against a frame start ``t0`` (``time.monotonic``): subframe ``k`` is
+        delivered at ``t0 + (k + 1) tau``, its end, as a triggered camera does."""
+        self._t0 = t0
+
     def render(self, k: int) -> np.ndarray:
         rig = self.rig
         tau = rig.subframe_s
@@ -262,7 +267,7 @@ class EmulatedMeasurementCamera(Camera):
         due = self._t0 + (k + 1) * self.rig.subframe_s
         if due > now:
             time.sleep(due - now)
-        return Frame(self._frames[k].astype(np.float32), k, k * self.rig.subframe_s)
+        return Frame(self._frames[k], k, k * self.rig.subframe_s)  # int16 DN, as a sensor delivers
 
     def _do_close(self) -> None:
         self._frames = None

@@ -73,6 +73,7 @@ class Rig:
     truth_motion: np.ndarray | None = None
     channels: list[str] = field(default_factory=lambda: ["Y"])
     meta: dict[str, Any] = field(default_factory=dict)
+    _trigger: Any = None
 
     @property
     def is_emulated(self) -> bool:
@@ -80,13 +81,51 @@ class Rig:
 
     def tick(self, n: int = 1) -> None:
         """The measurement camera's subframe trigger: on hardware the pulse reaches the
-        controller by wire; on the emulated rig we advance its clock."""
-        if self.emulator is not None:
+        controller by wire; on the emulated rig we advance its clock (a no-op while the
+        real-time trigger of :meth:`start_trigger` drives it)."""
+        if self.emulator is not None and self._trigger is None:
             self.emulator.tick(n)
+
+    def start_trigger(self, s0: int) -> float | None:
+        """Drive the emulated controller's clock in real time from now: subframe ``s0``
+        starts now and one subframe passes every ``subframe_s``, whatever the host does
+        (as the camera's trigger wire does on a rig). Returns the frame's start time
+        (``time.monotonic``) for the camera to pace itself against; None on hardware."""
+        if self.emulator is None:
+            return None
+        import threading
+        import time
+
+        t0 = time.monotonic()
+        tau = self.params.subframe_s
+        stop = threading.Event()
+        clock = self.emulator.clock
+
+        def run() -> None:
+            while not stop.is_set():
+                target = s0 + int((time.monotonic() - t0) / tau)
+                with clock.get_lock():
+                    if clock.value < target:
+                        clock.value = target
+                next_edge = t0 + (target - s0 + 1) * tau
+                stop.wait(max(0.0, next_edge - time.monotonic()) + 1e-4)
+
+        thread = threading.Thread(target=run, name="vet-trigger", daemon=True)
+        self._trigger = (thread, stop)
+        thread.start()
+        return t0
+
+    def stop_trigger(self) -> None:
+        if self._trigger is not None:
+            thread, stop = self._trigger
+            stop.set()
+            thread.join(1.0)
+            self._trigger = None
 
     def close(self) -> Any:
         """Close everything; returns the emulator's own record on the emulated rig."""
         record = None
+        self.stop_trigger()
         for dev in (self.measurement, self.vet):
             try:
                 dev.close()
