@@ -3,7 +3,7 @@
 Writes a small scene and small captures made by vet's own generators (same pixels for
 the same seed), used by the README examples and the Make recipes:
 
-- ``scenes/interior.exr``: the builtin lamp-lit interior, 320x256, linear RGB scene units;
+- ``scenes/interior.exr``: the builtin lamp-lit interior, 256x192, linear RGB scene units;
 - ``captures/interior_still.exr``: a VET capture of it, still, seed 1, 4 measuring bins;
 - ``captures/interior_pan.exr``: a VET capture panning at 30 px/s, seed 1, 4 measuring bins;
 - ``interior_hdr.png`` and ``interior_T.png``: the README's pictures.
@@ -14,7 +14,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-SIZE = (320, 256)
+SIZE = (256, 192)
 SEED = 1
 
 
