@@ -421,3 +421,20 @@ def test_unreachable_scheduler_is_a_runtime_error(tree, tmp_path, monkeypatch):
     r = vet("batch", tree, "-o", tmp_path / "out", "--scheduler", "tcp://127.0.0.1:9")
     assert r.exit_code == 1
     assert "cannot reach the Dask scheduler" in r.stderr
+
+
+def test_workers_limit_openimageio_to_one_thread():
+    """N workers must mean N cores: OpenImageIO/OpenEXR would otherwise spread each
+    worker's compression over every core (measured 1.4 cores for one worker)."""
+    import OpenImageIO as oiio
+
+    from stages.batch import worker
+
+    before = oiio.get_int_attribute("threads")
+    try:
+        worker._threads_limited = False
+        worker.limit_threads()
+        assert oiio.get_int_attribute("threads") == 1
+        assert oiio.get_int_attribute("exr_threads") == 1
+    finally:
+        oiio.attribute("threads", before)

@@ -177,3 +177,31 @@ def RigParamsDefault(w, h):
     from stages.rig import RigParams
 
     return RigParams(sensor_size=(w, h), lcos_cells=(64, 40))
+
+
+def test_a_slow_host_shows_as_late_closures_because_the_trigger_keeps_real_time(tmp_path):
+    """The device clock runs on the camera trigger, not on the host loop: a host that
+    takes three subframes to send its first closures sees them applied late, and T
+    says so (without the real-time trigger the clock would wait for the host)."""
+    import time
+
+    rig = open_rig("sim", SimOptions(scene="builtin:interior", size=SIZE, seed=2))
+    try:
+        send = rig.lcos.close_cells
+        calls = []
+
+        def slow_first_send(cells, **kw):
+            if not calls:
+                time.sleep(3 * rig.params.subframe_s)
+            calls.append(len(cells))
+            return send(cells, **kw)
+
+        rig.lcos.close_cells = slow_first_send
+        cap = capture_frame(rig, tmp_path / "cap", measure_bins=0, raw_stream=False)
+        record = rig.emulator.snapshot()
+        cellmap = CellMap.for_rig(rig.params, (SIZE[1], SIZE[0]))
+    finally:
+        rig.close()
+    late = cap.meta["capture_stats"]["late_closures"]
+    assert calls and late["count"] >= calls[0] and late["max"] >= 2
+    np.testing.assert_array_equal(cap.T, _t_from_record(record, cellmap, cap.rig))

@@ -174,3 +174,14 @@ def test_fast_controller_matches_a_plain_per_cell_max(rng):
         np.testing.assert_array_equal(np.sort(new), crossed)
     np.testing.assert_array_equal(ctrl.close_subframe, ref_close)
     assert 0 < (ref_close < ClosureController.NEVER).sum() < cm.n_cells
+
+
+def test_brightest_channel_is_the_per_pixel_maximum(rng):
+    from stages.physics import brightest_channel
+
+    rgb = rng.random((7, 9, 3)).astype(np.float32)
+    np.testing.assert_array_equal(brightest_channel(rgb), rgb.max(axis=2))
+    mono = rng.random((7, 9, 1)).astype(np.float32)
+    np.testing.assert_array_equal(brightest_channel(mono), mono[..., 0])
+    ints = rng.integers(-64, 4096, (5, 4, 3)).astype(np.int16)
+    np.testing.assert_array_equal(brightest_channel(ints), ints.max(axis=2))
