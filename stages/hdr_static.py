@@ -77,7 +77,10 @@ def hdr_static(cap: Capture) -> HDRImage:
         rec, rec_ok = _rate_from_measure(cap)
         if rec is not None:
             use = sat_px & rec_ok
-            rate = np.where(use[..., None], np.maximum(rec, rate), rate)
+            # The first bin measures the light directly, unclipped, nearer to t = 0. The
+            # clipped VET value only bounds the mean over [0, T], which a moving scene
+            # breaks (a bright edge arriving late pushes it far above the scene at t=0).
+            rate = np.where(use[..., None], rec, rate)
             mask[use] = 1
             mask[sat_px & ~rec_ok] = 2
             lower = sat_px & ~rec_ok

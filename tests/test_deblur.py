@@ -131,3 +131,23 @@ def test_deblur_refuses_comparison_captures():
     ]
     with pytest.raises(InputError):
         deblur(cap)
+
+
+def test_saturated_pixels_on_a_moving_path_are_deblurred_from_the_bins():
+    # Pixels the VET sensor saturated are measured by the bins (unclipped): the default
+    # method re-estimates them instead of keeping hdr-static's blurred value.
+    from tests.test_hdr_static import _bright_bar_moving_into_the_dark
+
+    cap = _bright_bar_moving_into_the_dark()
+    static = hdr_static(cap)
+    sat = static.mask == 1
+    img, _ = deblur(cap, "vet", motion_init="truth")
+    err = np.abs(np.log2(img.radiance[..., 0] / cap.truth[..., 0]))
+    err_static = np.abs(np.log2(static.radiance[..., 0] / cap.truth[..., 0]))
+    inner = np.zeros(cap.shape, bool)
+    inner[4:-4, 4:-4] = True
+    m = sat & inner
+    assert m.sum() > 100
+    rms = np.sqrt(np.mean(err[m] ** 2))
+    rms_static = np.sqrt(np.mean(err_static[m] ** 2))
+    assert rms < 0.5 * rms_static

@@ -112,3 +112,32 @@ def test_round_trip_shared_scenes_half_resolution(shared_hdr, name):
     assert vet["all"]["rms"] < err["long"]["all"]["rms"]
     if name != "Cannon":  # dynamic range ~30: a short exposure alone already suffices
         assert vet["all"]["rms"] < err["short"]["all"]["rms"]
+
+
+def _bright_bar_moving_into_the_dark(seed: int = 0):
+    """A bright bar on a dark ground, translating right: pixels ahead of the bar are dark
+    at t = 0, then the bar arrives, they saturate and close (a moving bright edge)."""
+    from stages.scenes import Scene
+
+    w, h = 96, 32
+    rig = RigParams(sensor_size=(w, h))
+    img = np.full((h, w, 1), 2e-3, np.float32)
+    img[:, 20:40] = 1.0
+    sc = Scene(img, ["Y"], "bar")
+    cap = simulate(sc, parse_motion("translate:30,0"), rig, seed=seed, methods=["vet"])["vet"]
+    return cap
+
+
+def test_saturated_pixels_of_a_moving_edge_take_the_first_bin_not_the_static_bound():
+    # The clipped VET value bounds the mean light over [0, T]; ahead of a moving bright
+    # edge that mean is far above the scene at t = 0. The first bin is the measurement.
+    cap = _bright_bar_moving_into_the_dark()
+    out = hdr_static(cap)
+    ahead = np.zeros(cap.shape, bool)
+    ahead[:, 44:70] = True  # dark at t = 0, crossed by the bar's leading edge later
+    m = ahead & (out.mask == 1)
+    assert m.sum() > 50
+    signed = np.log2(out.radiance[..., 0][m] / cap.truth[..., 0][m])
+    # The first bin (0.125 s, 3.75 px of travel) sees the edge only in its last columns.
+    assert np.median(signed) < 1.0
+    assert np.mean(signed > 4) < 0.1

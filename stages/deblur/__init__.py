@@ -138,7 +138,11 @@ def deblur(
     vel0 = initial_motion(cap, motion_init)
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
-    saturated = np.isin(static.mask, (1, 2))
+    # Pixels saturated in the VET image and in the first bin: only a lower bound is known.
+    # (Those saturated in the VET image alone are measured by the bins, which the default
+    # method fits; the paper's method, which fits I only, keeps their hdr-static value.)
+    bound_only = static.mask == 2
+    saturated = np.isin(static.mask, (1, 2)) if method == "paper" else bound_only
     if method == "vet":
         from .joint import JointOptions, deblur_joint
         from .problem import observations
@@ -182,7 +186,7 @@ def deblur(
         )
         name = "vet-deblur-paper"
     # Pixels hdr-static could only bound keep its value (the deblur has no data there).
-    L = np.where(saturated[..., None], np.maximum(L, L_init), L)
+    L = np.where(bound_only[..., None], np.maximum(L, L_init), L)
     radiance, units = rate_to_output_units(cap, L.astype(np.float32))
     meta = dict(static.meta)
     meta.update(

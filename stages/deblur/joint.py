@@ -7,7 +7,7 @@ Minimises over the scene at t = 0, ``L0`` (electrons/s), and a velocity field ``
   + sum_b sum_x  w_b(x) rho(A_b(u) L0 - y_b)^2          measuring bins (less blurred, noisier)
   + lam sum_edges  P_e c_e ((L0_i - L0_j) / ref_e)^2    edge-preserving relative smoothness
   + alpha |grad u|^2                                    smooth motion
-  + mu sum_sat (L0 - L_static)^2 / L_static^2           saturated pixels keep hdr-static
+  + mu sum_bound (L0 - L_static)^2 / L_static^2         pixels only bounded keep hdr-static
 
 by alternation: the image step is a linear least-squares problem solved with
 Jacobi-preconditioned conjugate gradients (:func:`~stages.deblur.problem.pcg`), warm
@@ -35,8 +35,10 @@ the scene, and for such data alone the noise-weighted maximum-likelihood solutio
 the static model is hdr-static's, which they keep. The measuring bins and the prior act
 only where the blur has to be undone. So a still scene (or a still background) comes
 out exactly as hdr-static: not a special case, the solution of the problem restricted
-to the unknowns the data's motion involves. Saturated pixels are anchored to
-hdr-static's lower bound (the data there are clipped).
+to the unknowns the data's motion involves. Pixels the VET sensor saturated carry no
+weight in the VET term (clipped data) and are estimated from the measuring bins and the
+paths crossing them; only those clipped in the first bin too, for which hdr-static has
+no more than a lower bound, are anchored to it.
 """
 
 from __future__ import annotations
@@ -346,7 +348,7 @@ def deblur_joint(
     frame_s, subframe_s, leakage : float
         Rig timing and LCoS leakage.
     saturated : ndarray of shape (H, W), bool
-        Pixels whose value hdr-static took from elsewhere (kept near it).
+        Pixels for which hdr-static has only a lower bound (kept near it).
     opts : JointOptions
     progress : callable, optional
         ``progress(done, total)`` after each step.
