@@ -3,11 +3,11 @@
 the height, a quarter of the frame's area), at the scenes' own resolution; then one
 summary of dark-pixel RMS with each acceptance comparison.
 
-Where the rectangle goes: of the nine placements on a quarter-frame grid, the one holding
-the most of the scene's dark content (luminance below the 99.9th percentile / K, which
-stays open for the whole frame; the centre wins ties). The criterion is about deblurring
-moving dark pixels, and a rectangle with none in it tests nothing: GoldenGate's centre
-holds no dark pixels.
+The rectangle is the central one (``object``) and, where it differs, the one placed on
+the scene's dark content (``object-dark``): of the nine placements on a quarter-frame
+grid, the one holding the most pixels below the 99.9th-percentile luminance / K (which
+stay open for the whole frame). The dark criteria are about deblurring moving dark
+pixels, and GoldenGate's central rectangle holds none.
 
 Run: python -m tests.benchmarks.evaluate_shared OUT_DIR [--size-scale F] [SCENE ...]
 (`make evaluate-shared` writes eval_out/). Skips cleanly when ../shared is absent.
@@ -69,10 +69,14 @@ def main(argv: list[str]) -> int:
         path = SHARED_HDR / f"{name}.exr"
         w, h = scene_size(path)
         w, h = int(round(w * scale)), int(round(h * scale))
+        central = (w // 4, h // 4, w // 2, h // 2)
+        on_dark = object_rectangle(path, w, h)
         motions = {
             "translate": "translate:30,0",
-            "object": "object:{},{},{},{}:40,10".format(*object_rectangle(path, w, h)),
+            "object": "object:{},{},{},{}:40,10".format(*central),
         }
+        if on_dark != central:
+            motions["object-dark"] = "object:{},{},{},{}:40,10".format(*on_dark)
         for tag, spec in motions.items():
             folder = out / f"{name}_{tag}"
             t0 = time.perf_counter()
