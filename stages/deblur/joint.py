@@ -26,8 +26,13 @@ HDR scenes at 240 px wide, translations and objects), the layers' velocities are
 still available with ``update_motion=True``) moved even the true motion away from the
 truth (0 to ~1.8 px/s median error), so they are not taken by default. Coarse to fine:
 the motion is estimated on a grid of at most 400 px (:data:`stages.deblur.layers.MAX_WORK_PX`)
-and refined coarse-to-fine in velocity; the image solve runs at full resolution
-from hdr-static (it converges in a few tens of CG iterations, measured).
+and refined coarse-to-fine in velocity; the image is solved first on 2 x 2 blocks
+(:mod:`stages.deblur.pyramid`: the exact summed rows of each block, an eighth of the
+work per iteration), and hdr-static times the prolonged (log-domain) coarse correction
+starts the full-resolution solve (``JointOptions.levels``). Measured at 1280x1024 with
+the true motion: dark RMS after 5 fine CG iterations 0.151 stops against 0.225 from
+hdr-static, and 0.1247 after all of them (3 outer steps) against 0.1269 (4 outer steps,
+no coarse level) in the same time.
 
 Only the pixels that a moving integration path touches are re-estimated
 (:func:`moving_support`): a pixel whose path does not move sees only its own point of
@@ -70,7 +75,7 @@ log = logging.getLogger(__name__)
 class JointOptions:
     """Tuning of :func:`deblur_joint` (defaults used by ``vet deblur``)."""
 
-    outer: int = 4
+    outer: int = 3
     cg_iters: int = 10
     final_cg_iters: int = 15
     lam: float = 0.15
@@ -81,6 +86,8 @@ class JointOptions:
     update_motion: bool = False
     use_measure: bool = True
     step_px: float = 1.0
+    levels: int = 1
+    coarse_min_px: int = 48
     history: list = field(default_factory=list)
 
 
@@ -319,6 +326,30 @@ def moving_support(A: sp.csr_matrix, Ab: StackedOperator | None = None) -> np.nd
     return free
 
 
+def _coarse_start(obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts):
+    """Start of the fine solve: hdr-static plus the coarse level's correction (H W, C)."""
+    from dataclasses import replace
+
+    from .pyramid import block_sum, coarsen, prolong_correction, restrict_mean
+
+    h, wd, c = obs.shape
+    h2, w2 = h // 2, wd // 2
+    cobs, t_c = coarsen(obs, T, frame_s, leakage)
+    L_c0 = restrict_mean(L_init.astype(np.float64))
+    vel_c = (velocity[: 2 * h2 : 2, : 2 * w2 : 2] / 2.0).astype(np.float32)
+    sat_c = block_sum(saturated.astype(np.int32)) > 0
+    copts = replace(opts, levels=opts.levels - 1, history=[], update_motion=False)
+    L_c, _ = deblur_joint(
+        cobs, L_c0.astype(np.float32), vel_c, t_c, frame_s, subframe_s, leakage, sat_c, copts
+    )
+    # Multiplicative (log-domain) correction: an additive one, interpolated across a
+    # bright edge, drives the dark pixels beside it negative.
+    tiny = 1e-30
+    ratio = np.log(np.maximum(L_c.astype(np.float64), tiny) / np.maximum(L_c0, tiny))
+    corr = prolong_correction(ratio, (h, wd))
+    return (L_init.astype(np.float64) * np.exp(corr)).reshape(h * wd, c)
+
+
 def deblur_joint(
     obs: Observations,
     L_init: np.ndarray,
@@ -368,6 +399,11 @@ def deblur_joint(
     opts = opts or JointOptions()
     h, wd, c = obs.shape
     n = h * wd
+    start = None
+    if opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0):
+        start = _coarse_start(
+            obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts
+        )
     ref = np.stack(
         [cv2.GaussianBlur(L_init[..., k].astype(np.float32), (0, 0), 1.0) for k in range(c)], -1
     )
@@ -395,6 +431,9 @@ def deblur_joint(
             data_diag = _diag_AtWA(A, obs.w)
             if Ab is not None:
                 data_diag += Ab.diag_normal(obs.wb)
+            if start is not None:
+                L = np.where(free[:, None], np.maximum(start, floor), L)
+                start = None
         if not free.any():
             log.debug("deblur: no pixel's integration path moves; the result is hdr-static")
             break

@@ -1,0 +1,68 @@
+"""The coarse level of the deblur's coarse-to-fine solve (stages.deblur.pyramid)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.deblur.operator import apply, blur_matrix, vet_windows
+from stages.deblur.problem import observations
+from stages.deblur.pyramid import block_sum, block_windows, coarsen, restrict_mean
+from stages.motion import parse_motion
+from stages.rig import RigParams
+from stages.scenes import builtin_interior
+from stages.simulate import simulate
+
+TF, TAU, K, EPS = 0.99975, 0.00758, 131, 0.002
+
+
+def _fine_then_sum(vel, T, x_coarse):
+    """Block sums of the fine operator applied to the piecewise-constant prolongation."""
+    fine = np.repeat(np.repeat(x_coarse, 2, axis=0), 2, axis=1)
+    A = blur_matrix(vel, vet_windows(T, TF, TAU, K, EPS))
+    return block_sum(apply(A, fine))
+
+
+def test_block_row_is_the_sum_of_its_children_rows_when_still():
+    rng = np.random.default_rng(0)
+    h, w = 24, 32
+    T = rng.choice([0.03, 0.2, 0.5, TF], (h, w)).astype(np.float32)
+    x = rng.random((h // 2, w // 2, 2))
+    Ac = blur_matrix(np.zeros((h // 2, w // 2, 2), np.float32), block_windows(T, TF, EPS))
+    fine = _fine_then_sum(np.zeros((h, w, 2), np.float32), T, x)
+    np.testing.assert_allclose(apply(Ac, x), fine, rtol=1e-5)
+
+
+def test_block_row_matches_its_children_under_motion_up_to_sub_block_offsets():
+    rng = np.random.default_rng(1)
+    h, w = 48, 64
+    T = rng.choice([0.03, 0.2, 0.5, TF], (h, w)).astype(np.float32)
+    x = np.repeat(np.repeat(rng.random((h // 4, w // 4, 1)), 2, 0), 2, 1)  # smooth-ish
+    vel = np.zeros((h, w, 2), np.float32)
+    vel[..., 0] = 12.0
+    Ac = blur_matrix(vel[::2, ::2] / 2, block_windows(T, TF, EPS))
+    coarse = apply(Ac, x)
+    fine = _fine_then_sum(vel, T, x)
+    inner = (slice(2, -2), slice(4, -4))
+    rel = np.abs(coarse - fine)[inner] / fine[inner]
+    assert np.median(rel) < 0.05
+
+
+def test_coarsened_data_add_and_their_variances_add():
+    w, h = 40, 32
+    rig = RigParams(sensor_size=(w, h))
+    cap = simulate(
+        builtin_interior(w, h), parse_motion("translate:30,0"), rig, seed=0, methods=["vet"]
+    )["vet"]
+    obs = observations(cap)
+    cobs, t_c = coarsen(obs, cap.T, rig.frame_s, rig.leakage)
+    assert cobs.shape == (h // 2, w // 2, 3)
+    y = obs.y.reshape(h, w, 3)
+    np.testing.assert_allclose(cobs.y.reshape(h // 2, w // 2, 3), block_sum(y), rtol=1e-6)
+    with np.errstate(divide="ignore"):
+        var = 1 / obs.w.reshape(h, w, 3)  # inf where saturated: the block has no weight
+    ok = cobs.w.reshape(h // 2, w // 2, 3) > 0
+    np.testing.assert_allclose(
+        1 / cobs.w.reshape(h // 2, w // 2, 3)[ok], block_sum(var)[ok], rtol=1e-6
+    )
+    np.testing.assert_allclose(t_c, restrict_mean(cap.T), rtol=1e-6)
+    assert len(cobs.windows_b) == len(obs.windows_b)
