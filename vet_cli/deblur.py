@@ -15,7 +15,7 @@ Estimates the scene L0 and a per-pixel velocity u (px/s) jointly from the variab
 exposure image I, the exposure time image T and the measuring images. --method vet (the
 default) estimates a layered motion (still background and translating layers, with
 occlusion) from all the measuring images and solves a noise-weighted misfit on I and
-the measuring images with conjugate gradients, robust at occlusions; pixels whose
+the measuring images with conjugate gradients, coarse to fine (2x2 blocks first), robust at occlusions; pixels whose
 integration path does not move keep hdr-static; --method paper
 reproduces the published method (least squares on I, Laplacian and
 histogram-intersection priors, steepest descent). --motion-init truth uses the
