@@ -26,9 +26,9 @@ two numbers, so it is far more accurate where the model holds. The estimate:
    ratio against stillness pooled over a small neighbourhood); points without clear
    evidence (:data:`EVIDENCE_NATS`) are tested again over wider neighbourhoods
    (:data:`POOL_SIGMAS`, the threshold falling with the noise of the pooled mean), so
-   that a dark, faintly textured moving region is found (on the evaluation scenes'
-   moving objects this cut the mislabelled share of the frame from 2-11% to 0.6-3%,
-   apart from flat black background); points clear at no scale take a default layer (the still one if the scene
+   that a dark, faintly textured moving region is found (``make bench``, bench_layers:
+   on the shared scenes' moving objects 0.5-3% of the frame gets the wrong layer, apart
+   from flat black background); points clear at no scale take a default layer (the still one if the scene
    has clearly still parts, else the moving layer most points clearly follow: a global
    motion); the label map is then cleaned with a median filter. A
    layer slower than :data:`MIN_SPEED_PX_S` is still; one that keeps under 1% of the
