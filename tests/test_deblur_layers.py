@@ -17,6 +17,14 @@ from stages.scenes import builtin_chart, builtin_interior
 from stages.simulate import simulate
 
 
+def _vet(scene, motion: str, seed: int):
+    """The VET capture of ``scene`` (its own size) under ``motion``."""
+    h, w = scene.radiance.shape[:2]
+    return simulate(
+        scene, parse_motion(motion), RigParams(sensor_size=(w, h)), seed=seed, methods=["vet"]
+    )["vet"]
+
+
 def _noise_free_expected(scene, motion, cap, rig):
     """The simulator's VET electrons without noise, from its own rendering of the motion."""
     expected = np.zeros_like(scene.radiance)
@@ -81,27 +89,12 @@ def test_still_rows_free_nothing():
 
 @pytest.fixture(scope="module")
 def object_capture():
-    w, h = 128, 96
-    scene = builtin_interior(w, h)
-    return simulate(
-        scene,
-        parse_motion("object:32,24,64,48:40,10"),
-        RigParams(sensor_size=(w, h)),
-        seed=2,
-        methods=["vet"],
-    )["vet"]
+    return _vet(builtin_interior(128, 96), "object:32,24,64,48:40,10", seed=2)
 
 
 def test_layer_estimate_finds_the_object():
     # A textured scene (on smooth regions the layer is ambiguous and left still).
-    w, h = 128, 96
-    cap = simulate(
-        builtin_chart(w, h),
-        parse_motion("object:32,24,64,48:40,10"),
-        RigParams(sensor_size=(w, h)),
-        seed=2,
-        methods=["vet"],
-    )["vet"]
+    cap = _vet(builtin_chart(128, 96), "object:32,24,64,48:40,10", seed=2)
     est = estimate_layers(cap)
     moving = [v for v in est.layer_velocities if np.hypot(*v) > 0]
     assert len(moving) == 1
@@ -112,14 +105,7 @@ def test_layer_estimate_finds_the_object():
 
 
 def test_layer_estimate_global_translation():
-    w, h = 128, 96
-    cap = simulate(
-        builtin_interior(w, h),
-        parse_motion("translate:30,0"),
-        RigParams(sensor_size=(w, h)),
-        seed=1,
-        methods=["vet"],
-    )["vet"]
+    cap = _vet(builtin_interior(128, 96), "translate:30,0", seed=1)
     est = estimate_layers(cap)
     err = np.hypot(*(est.velocity - cap.truth_motion).transpose(2, 0, 1))
     assert np.percentile(err, 95) < 0.5
@@ -202,13 +188,7 @@ def test_a_dark_faintly_textured_object_is_found_at_wider_scales():
     w, h = 160, 128
     img = builtin_chart(w, h).radiance.copy()
     img[32:96, 40:120] *= np.float32(0.003)
-    cap = simulate(
-        Scene(img, ["Y"], "dark object"),
-        parse_motion("object:40,32,80,64:40,10"),
-        RigParams(sensor_size=(w, h)),
-        seed=0,
-        methods=["vet"],
-    )["vet"]
+    cap = _vet(Scene(img, ["Y"], "dark object"), "object:40,32,80,64:40,10", seed=0)
     est = estimate_layers(cap)
     truth = np.any(cap.truth_motion != 0, axis=2)
     labelled = np.any(est.velocity != 0, axis=2)
