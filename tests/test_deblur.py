@@ -22,11 +22,10 @@ def _capture(motion: str, w: int = 96, h: int = 80, seed: int = 1):
     return simulate(scene, parse_motion(motion), rig, seed=seed, methods=["vet"])["vet"]
 
 
-def test_adjoint_dot_product():
-    # Random field, closure times and image (seeded: reproducible); <A x, y> = <x, A^T y>.
-    rng = np.random.default_rng(0)
-    h, w = 40, 48
-    vel = rng.normal(0, 20, (h, w, 2)).astype(np.float32)
+def assert_adjoint(vel: np.ndarray, rng: np.random.Generator) -> None:
+    """Dot-product test <A x, y> = <x, A^T y> of the operator for ``vel``, random closure
+    times, the VET windows plus one measuring-bin window, and random images."""
+    h, w = vel.shape[:2]
     T = rng.choice([0.03, 0.5, 0.99975], (h, w)).astype(np.float32)
     A = blur_matrix(vel, vet_windows(T, 0.99975, 0.00758, 131, 0.002) + [Window(0.1, 0.2, 1.0)])
     x = rng.random((h, w, 3))
@@ -34,6 +33,12 @@ def test_adjoint_dot_product():
     lhs = float(np.sum(apply(A, x) * y))
     rhs = float(np.sum(x * apply_adjoint(A, y)))
     assert abs(lhs - rhs) <= 1e-4 * abs(lhs)
+
+
+def test_adjoint_dot_product():
+    # Random (dense, per-pixel) velocity field; seeded, reproducible.
+    rng = np.random.default_rng(0)
+    assert_adjoint(rng.normal(0, 20, (40, 48, 2)).astype(np.float32), rng)
 
 
 def test_forward_matches_simulator_noise_free():

@@ -15,6 +15,7 @@ from stages.motion import parse_motion
 from stages.rig import RigParams
 from stages.scenes import builtin_chart, builtin_interior
 from stages.simulate import simulate
+from tests.test_deblur import assert_adjoint
 
 
 def _vet(scene, motion: str, seed: int):
@@ -163,26 +164,18 @@ def test_paper_method_descends_without_outliers():
 
 
 def test_layered_operator_adjoint_dot_product():
-    from stages.deblur.operator import Window, apply_adjoint
-
-    rng = np.random.default_rng(0)
-    h, w = 40, 48
-    vel = np.zeros((h, w, 2), np.float32)
+    # Two moving layers on a still background: the layered (occlusion) reading.
+    vel = np.zeros((40, 48, 2), np.float32)
     vel[10:25, 12:30] = (35.0, -8.0)
     vel[28:36, 5:15] = (-12.0, 4.0)
-    T = rng.choice([0.03, 0.5, 0.99975], (h, w)).astype(np.float32)
-    A = blur_matrix(vel, vet_windows(T, 0.99975, 0.00758, 131, 0.002) + [Window(0.1, 0.2, 1.0)])
-    x = rng.random((h, w, 3))
-    y = rng.random((h, w, 3))
-    lhs = float(np.sum(apply(A, x) * y))
-    rhs = float(np.sum(x * apply_adjoint(A, y)))
-    assert abs(lhs - rhs) <= 1e-4 * abs(lhs)
+    assert_adjoint(vel, np.random.default_rng(0))
 
 
 def test_a_dark_faintly_textured_object_is_found_at_wider_scales():
     # The chart darkened 330x inside the object: its texture is near the noise of one
     # short bin, so the evidence of one neighbourhood is weak; pooled over wider ones it
-    # is consistent, and the object is labelled moving (80% of it with one scale alone).
+    # is consistent, and the object is labelled moving (the single-scale test of the
+    # previous version left too much of it still and fails this).
     from stages.scenes import Scene
 
     w, h = 160, 128

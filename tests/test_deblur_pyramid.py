@@ -7,10 +7,7 @@ import numpy as np
 from stages.deblur.operator import apply, blur_matrix, vet_windows
 from stages.deblur.problem import observations
 from stages.deblur.pyramid import block_sum, block_windows, coarsen, restrict_mean
-from stages.motion import parse_motion
-from stages.rig import RigParams
-from stages.scenes import builtin_interior
-from stages.simulate import simulate
+from tests.test_deblur import _capture
 
 TF, TAU, K, EPS = 0.99975, 0.00758, 131, 0.002
 
@@ -49,12 +46,9 @@ def test_block_row_matches_its_children_under_motion_up_to_sub_block_offsets():
 
 def test_coarsened_data_add_and_their_variances_add():
     w, h = 40, 32
-    rig = RigParams(sensor_size=(w, h))
-    cap = simulate(
-        builtin_interior(w, h), parse_motion("translate:30,0"), rig, seed=0, methods=["vet"]
-    )["vet"]
+    cap = _capture("translate:30,0", w, h, seed=0)
     obs = observations(cap)
-    cobs, t_c = coarsen(obs, cap.T, rig.frame_s, rig.leakage)
+    cobs, t_c = coarsen(obs, cap.T, cap.rig.frame_s, cap.rig.leakage)
     assert cobs.shape == (h // 2, w // 2, 3)
     y = obs.y.reshape(h, w, 3)
     np.testing.assert_allclose(cobs.y.reshape(h // 2, w // 2, 3), block_sum(y), rtol=1e-6)
@@ -74,15 +68,11 @@ def test_coarse_level_gives_the_fine_solve_a_better_start():
     from stages.deblur.joint import JointOptions
     from stages.metrics import stops_error
 
-    w, h = 128, 96
-    rig = RigParams(sensor_size=(w, h))
-    cap = simulate(
-        builtin_interior(w, h), parse_motion("translate:30,0"), rig, seed=0, methods=["vet"]
-    )["vet"]
+    cap = _capture("translate:30,0", 128, 96, seed=0)
 
     def dark_rms(levels: int) -> float:
         opts = JointOptions(outer=0, final_cg_iters=5, levels=levels)
         img, _ = deblur(cap, "vet", motion_init="truth", options=opts)
-        return stops_error(img.radiance, cap.truth, cap.T, rig.frame_s)["dark"]["rms"]
+        return stops_error(img.radiance, cap.truth, cap.T, cap.rig.frame_s)["dark"]["rms"]
 
     assert dark_rms(1) < 0.9 * dark_rms(0)

@@ -143,9 +143,10 @@ def deblur(
     # method fits; the paper's method, which fits I only, keeps their hdr-static value.)
     bound_only = static.mask == 2
     saturated = np.isin(static.mask, (1, 2)) if method == "paper" else bound_only
+    from .problem import observations
+
     if method == "vet":
         from .joint import JointOptions, deblur_joint
-        from .problem import observations
 
         opts = options if options is not None else JointOptions()
         obs = observations(cap, use_measure=opts.use_measure)
@@ -166,7 +167,6 @@ def deblur(
         name = "vet-deblur"
     else:
         from .paper import PaperOptions, deblur_paper
-        from .problem import observations
 
         opts = options if options is not None else PaperOptions()
         obs = observations(cap, use_measure=False)

@@ -336,30 +336,32 @@ def _assign(
     # the moving layer most points clearly follow.
     raw = [_track_score(lv, slv, v, centres) * np.float32(0.5 * (nb - 1)) for v in cands[1:]]
     zero = np.zeros((hw, ww), np.float32)
-    label = np.full((hw, ww), -1, np.int32)
-    counts = None
-    llr0 = None
-    for i, sigma in enumerate(POOL_SIGMAS):
-        src = raw if i == 0 else [np.clip(r, -POOL_CLIP_NATS, POOL_CLIP_NATS) for r in raw]
+
+    def pooled(sigma: float, src: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pooled evidence (K, H, W), its best layer and where that is clear at ``sigma``."""
         llr = np.stack([zero] + [cv2.GaussianBlur(r, (0, 0), sigma) for r in src])
-        best = np.argmax(llr, axis=0)
-        top = np.max(llr, axis=0)
-        second = np.partition(llr, -2, axis=0)[-2]
-        clear = (top - second) > EVIDENCE_NATS * POOL_SIGMAS[0] / sigma
-        if i == 0:
-            counts = np.bincount(best[clear], minlength=len(cands)).astype(np.float64)
-            llr0 = llr
+        top2 = np.partition(llr, -2, axis=0)[-2:]
+        clear = (top2[1] - top2[0]) > EVIDENCE_NATS * POOL_SIGMAS[0] / sigma
+        return llr, np.argmax(llr, axis=0), clear
+
+    llr0, best, clear = pooled(POOL_SIGMAS[0], raw)
+    counts = np.bincount(best[clear], minlength=len(cands)).astype(np.float64)
+    label = np.where(clear, best, -1).astype(np.int32)
+    clipped = [np.clip(r, -POOL_CLIP_NATS, POOL_CLIP_NATS) for r in raw]
+    for sigma in POOL_SIGMAS[1:]:
+        _llr, best, clear = pooled(sigma, clipped)
         take = clear & (label < 0)
         label[take] = best[take]
+    wider = int((label >= 0).sum() - counts.sum())
     default = 0 if counts[0] >= 0.05 * max(counts.sum(), 1.0) else int(np.argmax(counts))
     llr0[default] += EVIDENCE_NATS
     rest = label < 0
     label[rest] = np.argmax(llr0, axis=0)[rest]
     log.debug(
-        "layers: clear evidence counts %s, default layer %d, %d points decided at wider scales",
+        "layers: clear evidence counts %s, %d points decided at wider scales, default layer %d",
         counts.tolist(),
+        wider,
         default,
-        int((label >= 0).sum() - counts.sum() - rest.sum()),
     )
     label = cv2.medianBlur(label.astype(np.uint8), 5).astype(np.int32)
     # Layers that keep too few points are merged into the largest one.

@@ -22,7 +22,7 @@ def main() -> dict:
     from stages.scenes import load_scene
     from stages.simulate import simulate
     from tests.benchmarks.common import SHARED_HDR
-    from tests.benchmarks.evaluate_shared import SCENES, object_rectangle
+    from tests.benchmarks.evaluate_shared import SCENES, sweep_motions
 
     if not SHARED_HDR.is_dir():
         print("bench layers: ../shared/data/hdr absent, skipped")
@@ -34,13 +34,7 @@ def main() -> dict:
         path = SHARED_HDR / f"{name}.exr"
         scene = load_scene(str(path))
         h, w = scene.radiance.shape[:2]
-        central = (w // 4, h // 4, w // 2, h // 2)
-        on_dark = object_rectangle(path, w, h)
-        specs = {"object": central, "translate": None}
-        if on_dark != central:
-            specs["object-dark"] = on_dark
-        for tag, rect in specs.items():
-            spec = "translate:30,0" if rect is None else "object:{},{},{},{}:40,10".format(*rect)
+        for tag, spec in sweep_motions(path, w, h).items():
             rig = RigParams(sensor_size=(w, h))
             cap = simulate(scene, parse_motion(spec), rig, seed=0, methods=["vet"])["vet"]
             t0 = time.perf_counter()

@@ -54,6 +54,19 @@ def object_rectangle(path: Path, w: int, h: int) -> tuple[int, int, int, int]:
     return x, y, rw, rh
 
 
+def sweep_motions(path: Path, w: int, h: int) -> dict[str, str]:
+    """The sweep's motions of one scene, by tag (module docstring)."""
+    central = (w // 4, h // 4, w // 2, h // 2)
+    on_dark = object_rectangle(path, w, h)
+    motions = {
+        "translate": "translate:30,0",
+        "object": "object:{},{},{},{}:40,10".format(*central),
+    }
+    if on_dark != central:
+        motions["object-dark"] = "object:{},{},{},{}:40,10".format(*on_dark)
+    return motions
+
+
 def main(argv: list[str]) -> int:
     if not SHARED_HDR.is_dir():
         print("evaluate-shared: ../shared/data/hdr absent, skipped")
@@ -69,14 +82,7 @@ def main(argv: list[str]) -> int:
         path = SHARED_HDR / f"{name}.exr"
         w, h = scene_size(path)
         w, h = int(round(w * scale)), int(round(h * scale))
-        central = (w // 4, h // 4, w // 2, h // 2)
-        on_dark = object_rectangle(path, w, h)
-        motions = {
-            "translate": "translate:30,0",
-            "object": "object:{},{},{},{}:40,10".format(*central),
-        }
-        if on_dark != central:
-            motions["object-dark"] = "object:{},{},{},{}:40,10".format(*on_dark)
+        motions = sweep_motions(path, w, h)
         for tag, spec in motions.items():
             folder = out / f"{name}_{tag}"
             t0 = time.perf_counter()
