@@ -236,3 +236,25 @@ def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
     off = np.roll(t8, (3, -3), (0, 1)).astype(np.int32)
     fixed = _refine_boundaries(lum, noise, off, vels, centres)
     assert np.array_equal(fixed[~_ring(off.astype(bool), 10)], off[~_ring(off.astype(bool), 10)])
+
+
+def test_a_candidate_layer_no_point_keeps_leaves_a_still_estimate(monkeypatch):
+    # A fine random texture seen on a coarse working grid: the flow votes give a moving
+    # candidate, but no point shows clear evidence for it. The estimate is then the
+    # still scene (this once crashed in the second assignment, with no moving layer).
+    import cv2
+
+    from stages.deblur import layers
+    from stages.scenes import Scene
+
+    rng = np.random.default_rng(0)
+    tex = cv2.GaussianBlur(rng.normal(0, 1, (128, 160)).astype(np.float32), (0, 0), 1.0)
+    img = np.exp(1.5 * tex / tex.std()).astype(np.float32)[..., None]
+    cap = _vet(Scene(img, ["Y"], "texture"), "object:40,32,80,64:40,10", seed=0)
+    monkeypatch.setattr(layers, "MAX_WORK_PX", 64)
+    calls = []
+    assign = layers._assign
+    monkeypatch.setattr(layers, "_assign", lambda *a: calls.append(len(a[2])) or assign(*a))
+    est = estimate_layers(cap)
+    assert calls == [2]  # one moving candidate, assigned once, kept by no point
+    assert np.all(est.velocity == 0) and est.layer_velocities.tolist() == [[0.0, 0.0]]
