@@ -113,14 +113,7 @@ def test_layer_estimate_global_translation():
 
 
 def test_still_scene_deblur_is_hdr_static():
-    w, h = 96, 80
-    cap = simulate(
-        builtin_interior(w, h),
-        parse_motion("none"),
-        RigParams(sensor_size=(w, h)),
-        seed=1,
-        methods=["vet"],
-    )["vet"]
+    cap = _vet(builtin_interior(96, 80), "none", seed=1)
     static = hdr_static(cap)
     img, vel = deblur(cap, "vet")
     assert np.all(vel == 0)
@@ -145,14 +138,7 @@ def test_estimated_motion_close_to_oracle(object_capture):
 def test_paper_method_descends_without_outliers():
     # Steepest descent on log L with an Armijo line search: the energy falls and no dark
     # pixel is driven to the floor (the failure of a clamped exact-line-search step).
-    w, h = 96, 80
-    cap = simulate(
-        builtin_interior(w, h),
-        parse_motion("translate:30,0"),
-        RigParams(sensor_size=(w, h)),
-        seed=1,
-        methods=["vet"],
-    )["vet"]
+    cap = _vet(builtin_interior(96, 80), "translate:30,0", seed=1)
     from stages.deblur.paper import PaperOptions
 
     static = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, cap.rig.frame_s)["dark"]
