@@ -145,6 +145,8 @@ def deblur(
     saturated = np.isin(static.mask, (1, 2)) if method == "paper" else bound_only
     from .problem import observations
 
+    # What both methods take: the start image and motion, and the capture's timing.
+    start = (L_init, vel0, cap.T, tf, rig.subframe_s, rig.leakage)
     if method == "vet":
         from .joint import JointOptions, deblur_joint
 
@@ -152,12 +154,7 @@ def deblur(
         obs = observations(cap, use_measure=opts.use_measure)
         L, vel = deblur_joint(
             obs,
-            L_init,
-            vel0,
-            cap.T,
-            tf,
-            rig.subframe_s,
-            rig.leakage,
+            *start,
             saturated,
             opts,
             progress=progress,
@@ -172,12 +169,7 @@ def deblur(
         obs = observations(cap, use_measure=False)
         L, vel = deblur_paper(
             obs,
-            L_init,
-            vel0,
-            cap.T,
-            tf,
-            rig.subframe_s,
-            rig.leakage,
+            *start,
             static,
             saturated,
             opts,
