@@ -220,8 +220,17 @@ def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
     assert after <= 0.8 * before, (after, before)  # (1857 vs 2574)
     # Far from the boundary nothing changes.
     off = np.roll(t8, (3, -3), (0, 1)).astype(np.int32)
-    fixed = _refine_boundaries(lum, noise, off, vels, centres)
-    assert np.array_equal(fixed[~_ring(off.astype(bool), 10)], off[~_ring(off.astype(bool), 10)])
+    far = ~_ring(off.astype(bool), 10)
+    assert np.array_equal(_refine_boundaries(lum, noise, off, vels, centres)[far], off[far])
+
+
+def test_layers_no_pixel_keeps_are_dropped():
+    from stages.deblur.layers import _kept_layers
+
+    vels = np.array([[0.0, 0.0], [5.0, 0.0], [40.0, 10.0]], np.float32)
+    label, kept = _kept_layers(np.array([[0, 2], [2, 0]]), vels)
+    assert label.tolist() == [[0, 1], [1, 0]]
+    assert kept.tolist() == [[0.0, 0.0], [40.0, 10.0]]
 
 
 def test_a_candidate_layer_no_point_keeps_leaves_a_still_estimate(monkeypatch):

@@ -26,10 +26,10 @@ HDR scenes at 240 px wide, translations and objects), the layers' velocities are
 still available with ``update_motion=True``) moved even the true motion away from the
 truth (0 to ~1.8 px/s median error), so they are not taken by default. Coarse to fine:
 the motion is estimated on a grid of at most 400 px (:data:`stages.deblur.layers.MAX_WORK_PX`)
-and refined coarse-to-fine in velocity, the layer boundaries are then placed at full
-resolution (:func:`stages.deblur.layers._refine_boundaries`); the image is solved first on 2 x 2 blocks
-(:mod:`stages.deblur.pyramid`: the exact summed rows of each block, an eighth of the
-work per iteration), and hdr-static times the prolonged (log-domain) coarse correction
+and refined coarse-to-fine in velocity, and the layer boundaries are then placed at
+full resolution (:func:`stages.deblur.layers._refine_boundaries`). The image is solved
+first on 2 x 2 blocks (:mod:`stages.deblur.pyramid`: the exact summed rows of each
+block, an eighth of the work per iteration), and hdr-static times the prolonged (log-domain) coarse correction
 starts the full-resolution solve (``JointOptions.levels``), which then needs one outer
 step fewer (``make bench`` prints the error against the fine iterations).
 
