@@ -29,9 +29,10 @@ the motion is estimated on a grid of at most 400 px (:data:`stages.deblur.layers
 and refined coarse-to-fine in velocity, and the layer boundaries are then placed at
 full resolution (:func:`stages.deblur.layers._refine_boundaries`). The image is solved
 first on 2 x 2 blocks (:mod:`stages.deblur.pyramid`: the exact summed rows of each
-block, an eighth of the work per iteration), and hdr-static times the prolonged (log-domain) coarse correction
-starts the full-resolution solve (``JointOptions.levels``), which then needs one outer
-step fewer (``make bench`` prints the error against the fine iterations).
+block, an eighth of the work per iteration), and hdr-static times the prolonged
+(log-domain) coarse correction starts the full-resolution solve
+(``JointOptions.levels``), which then needs one outer step fewer (``make bench`` prints
+the error against the fine iterations).
 
 Only the pixels that a moving integration path touches are re-estimated
 (:func:`moving_support`): a pixel whose path does not move sees only its own point of
