@@ -26,19 +26,17 @@ two numbers, so it is far more accurate where the model holds. The estimate:
    ratio against stillness pooled over a small neighbourhood); points without clear
    evidence (:data:`EVIDENCE_NATS`) are tested again over wider neighbourhoods
    (:data:`POOL_SIGMAS`, the threshold falling with the noise of the pooled mean), so
-   that a dark, faintly textured moving region is found (``make bench``, bench_layers:
-   on the shared scenes' moving objects 0.5-3% of the frame gets the wrong layer, apart
-   from flat black background); points clear at no scale take a default layer (the still one if the scene
-   has clearly still parts, else the moving layer most points clearly follow: a global
-   motion); the label map is then cleaned with a median filter. A
-   layer slower than :data:`MIN_SPEED_PX_S` is still; one that keeps under 1% of the
+   that a dark, faintly textured moving region is found; points clear at no scale take
+   a default layer (the still one if the scene has clearly still parts, else the moving
+   layer most points clearly follow: a global motion); the label map is then cleaned
+   with a median filter. A layer slower than :data:`MIN_SPEED_PX_S` is still; one that keeps under 1% of the
    points is merged into the largest.
 5. **Boundaries at full resolution.** Where the working grid is coarser than the
    capture, the labels within :data:`BOUNDARY_BAND_PX` of a layer boundary are decided
    again from the full-resolution bins (:func:`_refine_boundaries`): on the moving
    objects of Desk, GoldenGate, Bonita and Cannon this cuts the share of the frame with
-   the wrong layer by 34-76% (``make bench``, bench_layers; CandleGlass's errors lie on
-   its flat black background, where no resolution helps).
+   the wrong layer by 34-76%, to 0.14-1.51% (``make bench``, bench_layers; CandleGlass's
+   2.7% and 14.2% lie on its flat black background, where motion changes nothing).
 
 The result is a velocity field with a handful of distinct values that
 :func:`stages.deblur.operator.blur_matrix` reads as layers with occlusion.
