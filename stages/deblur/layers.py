@@ -29,8 +29,8 @@ two numbers, so it is far more accurate where the model holds. The estimate:
    that a dark, faintly textured moving region is found; points clear at no scale take
    a default layer (the still one if the scene has clearly still parts, else the moving
    layer most points clearly follow: a global motion); the label map is then cleaned
-   with a median filter. A layer slower than :data:`MIN_SPEED_PX_S` is still; one that keeps under 1% of the
-   points is merged into the largest.
+   with a median filter. A layer slower than :data:`MIN_SPEED_PX_S` is still; one
+   that keeps under 1% of the points is merged into the largest.
 5. **Boundaries at full resolution.** Where the working grid is coarser than the
    capture, the labels within :data:`BOUNDARY_BAND_PX` of a layer boundary are decided
    again from the full-resolution bins (:func:`_refine_boundaries`): on the moving
