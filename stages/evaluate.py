@@ -212,48 +212,27 @@ def errors_chart(ev: Evaluation) -> bytes:
     return _figure_png(fig)
 
 
-def _tonemapper() -> Callable[[np.ndarray, float, float], np.ndarray]:
-    try:
-        from .tonemap import tonemap
-
-        def tm(rad: np.ndarray, black: float, white: float) -> np.ndarray:
-            return tonemap(rad, operator="log", exposure=0.0, black=black, white=white)
-
-        tm(np.ones((2, 2, 1), np.float32), 0.1, 1.0)
-        return tm
-    except Exception:  # tonemap module absent or different: a plain global log mapping
-
-        def tm(rad: np.ndarray, black: float, white: float) -> np.ndarray:
-            lum = np.maximum(rad, 0)
-            return np.clip(np.log1p(lum / black) / np.log1p(white / black), 0, 1).astype(np.float32)
-
-        return tm
-
-
 def contact_sheet(ev: Evaluation) -> np.ndarray:
     """All methods and the truth, one log tone mapping with the truth's levels, (H', W', 3)."""
-    import cv2
+    from .formats.images import captioned
+    from .tonemap import tonemap
 
     lum = ev.truth.mean(axis=2)
     pos = lum[lum > 0]
     white = float(np.percentile(pos, 99.5)) if pos.size else 1.0
     black = max(float(np.percentile(pos, 1.0)) if pos.size else 1e-3, white * 1e-6)
-    tm = _tonemapper()
     tiles = [("truth", ev.truth)] + list(ev.images.items())
-    h, w = ev.truth.shape[:2]
     out_tiles = []
     for name, rad in tiles:
-        d = np.asarray(tm(rad, black, white), np.float32)
+        d = np.asarray(
+            tonemap(rad, operator="log", exposure=0.0, black=black, white=white), np.float32
+        )
         if d.ndim == 2:
             d = d[..., None]
         if d.shape[2] == 1:
             d = np.repeat(d, 3, axis=2)
         img = np.ascontiguousarray((np.clip(d, 0, 1) * 255).astype(np.uint8))
-        bar = np.zeros((22, w, 3), np.uint8)
-        cv2.putText(
-            bar, name, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA
-        )
-        out_tiles.append(np.concatenate([bar, img], axis=0))
+        out_tiles.append(captioned(img, name, dark=True))
     cols = 4
     while len(out_tiles) % cols:
         out_tiles.append(np.zeros_like(out_tiles[0]))
@@ -262,8 +241,8 @@ def contact_sheet(ev: Evaluation) -> np.ndarray:
 
 
 def motion_picture(ev: Evaluation) -> np.ndarray:
-    """Estimated (default deblur) and true motion side by side on one colour wheel scale."""
-    from .flow import flow_to_color
+    """Estimated (default deblur) and true motion side by side on one colour-wheel scale."""
+    from .flow import motion_picture as picture
 
     true = (
         ev.truth_motion
@@ -271,9 +250,7 @@ def motion_picture(ev: Evaluation) -> np.ndarray:
         else np.zeros((*ev.truth.shape[:2], 2), np.float32)
     )
     est = ev.velocity if ev.velocity is not None else np.zeros_like(true)
-    vmax = max(float(np.percentile(np.hypot(true[..., 0], true[..., 1]), 99)), 1.0)
-    gap = np.full((true.shape[0], 8, 3), 255, np.uint8)
-    return np.concatenate([flow_to_color(est, vmax), gap, flow_to_color(true, vmax)], axis=1)
+    return picture([("estimated (vet-deblur)", est), ("true", true)])
 
 
 def write_report(ev: Evaluation, folder: str | Path) -> list[Path]:

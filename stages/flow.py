@@ -194,13 +194,15 @@ def flow_to_color(velocity: np.ndarray, max_speed: float | None = None) -> np.nd
     Parameters
     ----------
     velocity : ndarray of shape (H, W, 2)
+        ``u`` (right) and ``v`` (down), px/s.
     max_speed : float, optional
-        Speed shown fully saturated; default the 99th percentile of the field's speed.
+        Speed shown fully saturated; default :func:`picture_speed_scale` of the field.
 
     Returns
     -------
-    ndarray of shape (H, W, 3), uint8 RGB. White is still; hue follows the direction
-    (Baker et al. 2011 convention: right is red, down is blue-green... by angle).
+    ndarray of shape (H, W, 3), uint8 RGB. White is still; the hue is the direction of
+    motion in image coordinates: right red, down yellow-green, left cyan, up violet
+    (:func:`flow_key` draws the wheel).
     """
     import cv2
 
@@ -208,12 +210,93 @@ def flow_to_color(velocity: np.ndarray, max_speed: float | None = None) -> np.nd
     v = velocity[..., 1].astype(np.float32)
     mag = np.hypot(u, v)
     if max_speed is None:
-        max_speed = float(np.percentile(mag, 99)) if mag.size else 1.0
+        max_speed = picture_speed_scale(velocity)
     max_speed = max(max_speed, 1e-6)
     ang = (np.degrees(np.arctan2(v, u)) % 360.0) / 2.0  # OpenCV hue is 0..180
     sat = np.clip(mag / max_speed, 0, 1) * 255
     hsv = np.stack([ang, sat, np.full_like(ang, 255)], axis=-1).astype(np.uint8)
     return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+
+
+#: Speeds shown fully saturated are never below this (px/s), so flow noise in a nearly
+#: still field stays pale instead of filling the picture with colour.
+MIN_PICTURE_SPEED = 1.0
+
+
+def picture_speed_scale(*fields: np.ndarray) -> float:
+    """Speed to show fully saturated: the 99th percentile of the moving pixels' speeds.
+
+    Pixels with zero speed (a still background) do not count, so a small moving object is
+    shown in full colour; the result is at least :data:`MIN_PICTURE_SPEED`.
+    """
+    speeds = [np.hypot(f[..., 0], f[..., 1]).ravel() for f in fields]
+    s = np.concatenate(speeds) if speeds else np.zeros(0)
+    s = s[np.isfinite(s) & (s > 0)]
+    return max(float(np.percentile(s, 99)) if s.size else 0.0, MIN_PICTURE_SPEED)
+
+
+def flow_key(max_speed: float, size: int = 112) -> np.ndarray:
+    """The colour wheel of :func:`flow_to_color` with its speed scale, (H, size, 3) uint8.
+
+    A disc whose rim is ``max_speed`` in every direction (centre: still), captioned with
+    the speed shown fully saturated.
+    """
+    import cv2
+
+    r = (size - 1) / 2.0
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    vel = np.stack([xx - r, yy - r], axis=-1) * np.float32(max_speed / r)
+    wheel = flow_to_color(vel, max_speed)
+    wheel[np.hypot(xx - r, yy - r) > r] = 255
+    cv2.circle(wheel, (size // 2, size // 2), int(r), (0, 0, 0), 1, cv2.LINE_AA)
+    text = np.full((34, size, 3), 255, np.uint8)
+    for row, line in enumerate(("rim = ", f"{max_speed:.3g} px/s")):
+        cv2.putText(
+            text,
+            line,
+            (2, 13 + 15 * row),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            (0, 0, 0),
+            1,
+            cv2.LINE_AA,
+        )
+    return np.concatenate([wheel, text], axis=0)
+
+
+def motion_picture(
+    panels: list[tuple[str, np.ndarray]], max_speed: float | None = None
+) -> np.ndarray:
+    """Velocity fields side by side on one colour-wheel scale, captioned, with the key.
+
+    Parameters
+    ----------
+    panels : list of (caption, velocity (H, W, 2))
+        Fields of one size, e.g. ``[("estimated", est), ("true", truth)]``.
+    max_speed : float, optional
+        Speed shown fully saturated; default :func:`picture_speed_scale` of all panels.
+
+    Returns
+    -------
+    ndarray (H', W', 3) uint8 RGB: a caption bar over each panel, the key on the right.
+    """
+    from .formats.images import captioned
+
+    if max_speed is None:
+        max_speed = picture_speed_scale(*(v for _, v in panels))
+    tiles = []
+    for caption, vel in panels:
+        pic = flow_to_color(vel, max_speed)
+        pic[[0, -1], :] = pic[:, [0, -1]] = 160  # a grey frame: white is still
+        tile = captioned(pic, caption)
+        tiles += [tile, np.full((tile.shape[0], 8, 3), 255, np.uint8)]
+    key = flow_key(max_speed)
+    height = max(tiles[0].shape[0], key.shape[0])
+    padded = [
+        np.pad(t, ((0, height - t.shape[0]), (0, 0), (0, 0)), constant_values=255)
+        for t in tiles + [key]
+    ]
+    return np.concatenate(padded, axis=1)
 
 
 def moving_mask(cap: Capture, smooth_px: float = 4.0, threshold: float = 1.5) -> np.ndarray:

@@ -43,3 +43,30 @@ def test_motion_file_and_picture(tmp_path):
     assert pic.shape == (20, 30, 3) and pic.dtype == np.uint8
     still = flow_to_color(np.zeros_like(vel))
     assert np.all(still == 255)
+
+
+def test_motion_picture_panels_share_one_scale_and_carry_the_key():
+    from stages.flow import flow_key, motion_picture, picture_speed_scale
+
+    est = np.zeros((60, 80, 2), np.float32)
+    est[20:40, 20:50] = (40.0, 0.0)  # a small moving object on a still background
+    true = est.copy()
+    true[20:40, 20:50] = (20.0, 0.0)
+    # The still background does not count towards the scale.
+    assert picture_speed_scale(est, true) == pytest.approx(40.0, rel=0.01)
+    assert picture_speed_scale(np.zeros_like(est)) == 1.0
+    pic = motion_picture([("estimated", est), ("true", true)])
+    key = flow_key(picture_speed_scale(est, true))
+    assert pic.shape[1] == 2 * (80 + 8) + key.shape[1]
+    assert pic.shape[0] == max(60 + 22, key.shape[0])
+    # Below each 22-pixel caption bar: the same pixel of both panels, on one scale.
+    left = pic[22 + 30, 35]
+    right = pic[22 + 30, 88 + 35]
+    assert tuple(left) == tuple(flow_to_color(est, 40.0)[30, 35])
+    assert tuple(right) == tuple(flow_to_color(true, 40.0)[30, 35])
+    assert left[1] < right[1]  # 40 px/s is more saturated (less white) than 20 px/s
+    assert np.all(pic[22 + 5, 5] == 255)  # still is white
+    # The key's rim, rightwards, is the colour of full speed to the right.
+    k = flow_key(40.0, size=101)
+    rim_right = k[50, 98]  # 48 of the 50 px radius (inside the outline): 96% of full speed
+    assert np.abs(rim_right.astype(int) - flow_to_color(est, 40.0)[30, 35]).max() <= 12

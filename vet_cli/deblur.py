@@ -69,7 +69,8 @@ def cli(
     motion_picture: str | None,
 ) -> None:
     from stages.deblur import deblur
-    from stages.flow import flow_to_color, write_motion
+    from stages.flow import motion_picture as picture
+    from stages.flow import write_motion
     from stages.formats import read_capture, write_hdr
     from stages.formats.images import write_display_image
 
@@ -86,4 +87,4 @@ def cli(
             {"source": capture, "method": img.meta["method"], "provenance": img.meta["provenance"]},
         )
     if motion_picture:
-        write_display_image(motion_picture, flow_to_color(vel))
+        write_display_image(motion_picture, picture([(f"estimated ({img.meta['method']})", vel)]))

@@ -163,3 +163,17 @@ def write_display_image(path: str | Path, image: np.ndarray, bits: int = 8) -> N
     data = encode_display_image(image, fmt, bits)
     with atomic_output(path, suffix=_SUFFIX[fmt] if str(path) == "-" else None) as tmp:
         tmp.write_bytes(data)
+
+
+def captioned(image: np.ndarray, caption: str, dark: bool = False) -> np.ndarray:
+    """``image`` (H, W, 3) uint8 with a 22-pixel caption bar above it.
+
+    ``dark`` puts white text on black (for tone-mapped pictures), else black on white.
+    """
+    import cv2
+
+    bg, fg = ((0, 0, 0), (255, 255, 255)) if dark else ((255, 255, 255), (0, 0, 0))
+    bar = np.empty((22, image.shape[1], 3), np.uint8)
+    bar[:] = bg
+    cv2.putText(bar, caption, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, fg, 1, cv2.LINE_AA)
+    return np.concatenate([bar, image], axis=0)
