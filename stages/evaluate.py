@@ -173,21 +173,52 @@ def results_markdown(ev: Evaluation) -> str:
         "|---|" + "---:|" * 10,
     ]
     for r in rows:
-        cells = [f"{r[f'{reg}_{st}']:.3f}" for reg in REGIONS for st in STATS]
+        cells = [_cell(r[f"{reg}_{st}"]) for reg in REGIONS for st in STATS]
         lines.append(f"| {r['method']} | " + " | ".join(cells) + f" | {r['runtime_s']:.1f} |")
     lines += [
         "",
         f"Pixels scored: all {rows[0]['n_all']}, dark {rows[0]['n_dark']}, "
         f"bright {rows[0]['n_bright']}. Simulation took {ev.runtime_s.get('simulate', 0):.1f} s.",
-        "",
     ]
+    empty = [reg for reg in REGIONS if rows[0][f"n_{reg}"] == 0]
+    if empty:
+        lines.append(f"No pixel is {' or '.join(empty)} in this capture: its columns are '-'.")
+    if any(np.isinf(r[f"{reg}_{st}"]) for r in rows for reg in REGIONS for st in STATS):
+        lines.append("'inf': the method gave a zero, negative or non-finite value there.")
+    lines.append("")
     return "\n".join(lines)
+
+
+def _cell(value: float) -> str:
+    """A table cell: 3 decimals, '-' for a region without pixels, 'inf' as such."""
+    return "-" if np.isnan(value) else f"{value:.3f}"
 
 
 def _figure_png(fig: Any) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
     return buf.getvalue()
+
+
+def chart_bars(
+    ev: Evaluation,
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
+    """Bar heights of :func:`errors_chart`: RMS per region and method (``ev.scores`` order).
+
+    An infinite error (a zero, negative or non-finite estimate) is drawn to ``top``, 10%
+    above the largest finite bar, and flagged; a region without pixels is NaN (no bar).
+    Returns ``(heights, infinite, top)``.
+    """
+    names = list(ev.scores)
+    rms = {
+        reg: np.array([ev.scores[n].get(reg, {}).get("rms", np.nan) for n in names], float)
+        for reg in REGIONS
+    }
+    finite = np.concatenate([v[np.isfinite(v)] for v in rms.values()])
+    top = 1.1 * float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+    infinite = {reg: np.isinf(v) for reg, v in rms.items()}
+    heights = {reg: np.where(infinite[reg], top, v) for reg, v in rms.items()}
+    return heights, infinite, top
 
 
 def errors_chart(ev: Evaluation) -> bytes:
@@ -200,9 +231,14 @@ def errors_chart(ev: Evaluation) -> bytes:
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     x = np.arange(len(names))
+    heights, infinite, top = chart_bars(ev)
     for i, reg in enumerate(REGIONS):
-        vals = [ev.scores[n].get(reg, {}).get("rms", np.nan) for n in names]
-        ax.bar(x + (i - 1) * 0.27, np.nan_to_num(vals, nan=0.0, posinf=0.0), 0.27, label=reg)
+        bars = ax.bar(x + (i - 1) * 0.27, heights[reg], 0.27, label=reg)
+        for b, is_inf in zip(bars, infinite[reg], strict=True):
+            if is_inf:
+                b.set_hatch("//")
+                ax.text(b.get_x() + b.get_width() / 2, top, "inf", ha="center", va="bottom")
+    ax.set_ylim(0, top * 1.12)
     ax.set_xticks(x)
     ax.set_xticklabels(names, rotation=20, ha="right")
     ax.set_ylabel("RMS error, stops")

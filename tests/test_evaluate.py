@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from vet_cli.main import cli
@@ -108,3 +109,37 @@ def test_deblur_cli_writes_image_and_motion(tmp_path):
     img = read_hdr(tmp_path / "d.exr")
     assert img.meta["method"] == "vet-deblur" and np.all(np.isfinite(img.radiance))
     assert (tmp_path / "m.exr").is_file() and (tmp_path / "m.png").is_file()
+
+
+def _scores(all_rms: float, dark_n: int) -> dict:
+    nan = float("nan")
+    dark = {"median": nan, "p99": nan, "rms": nan, "n": 0} if dark_n == 0 else None
+    return {
+        "all": {"median": 0.1, "p99": 1.0, "rms": all_rms, "n": 100},
+        "dark": dark or {"median": 0.2, "p99": 2.0, "rms": 0.3, "n": dark_n},
+        "bright": {"median": 0.1, "p99": 1.0, "rms": 0.4, "n": 100 - dark_n},
+    }
+
+
+def test_report_marks_empty_regions_and_infinite_errors():
+    """A capture with no dark pixel gets '-' cells and no dark bars; an infinitely wrong
+    method (a zero estimate) is 'inf' in the table and a marked full-height bar, never 0."""
+    from stages.evaluate import Evaluation, chart_bars, errors_chart, results_markdown
+
+    ev = Evaluation(scene="s.exr", motion="translate:30,0", size=(10, 10), seed=0)
+    ev.scores = {"vet-deblur": _scores(0.5, 0), "short": _scores(float("inf"), 0)}
+    ev.runtime_s = {"vet-deblur": 1.0, "short": 0.0}
+    md = results_markdown(ev)
+    assert "| vet-deblur | 0.100 | 1.000 | 0.500 | - | - | - | 0.100 | 1.000 | 0.400 |" in md
+    assert "| short | 0.100 | 1.000 | inf | - |" in md
+    assert "No pixel is dark in this capture" in md and "'inf'" in md
+    heights, infinite, top = chart_bars(ev)
+    assert top == pytest.approx(0.55)  # 10% above the largest finite bar
+    assert heights["all"].tolist() == [0.5, pytest.approx(0.55)]
+    assert infinite["all"].tolist() == [False, True]
+    assert np.all(np.isnan(heights["dark"]))
+    assert errors_chart(ev)[:8] == b"\x89PNG\r\n\x1a\n"
+    # With dark pixels and finite errors the table carries neither note.
+    ev.scores = {"vet-deblur": _scores(0.5, 40)}
+    md = results_markdown(ev)
+    assert "No pixel" not in md and "'inf'" not in md and "| 0.300 |" in md
