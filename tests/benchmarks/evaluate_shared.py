@@ -139,12 +139,19 @@ def main(argv: list[str]) -> int:
         ranking = "yes" if d < p <= s < a else ("-" if s != s else "no")
         sa, la, sh = g("vet-static", "all_rms"), g("long", "all_rms"), g("short", "all_rms")
         worse = f"{'yes' if la > sa else 'no'}, {'yes' if sh > sa else 'no'}"
+        ratio = d / o if o else float("nan")
         print(
-            f"| {name} | {tag} | {d:.4f} | {p:.4f} | {s:.4f} | {a:.4f} | {o:.4f} |"
-            f" {100 * cut:.0f}% | {d / o if o else float('nan'):.2f} | {ranking} |"
-            f" {g('vet-deblur', 'all_rms'):.3f} | {sa:.3f} | {la:.3f} | {sh:.3f} | {worse} |"
+            f"| {name} | {tag} | {_f(d, '.4f')} | {_f(p, '.4f')} | {_f(s, '.4f')} |"
+            f" {_f(a, '.4f')} | {_f(o, '.4f')} | {_f(100 * cut, '.0f', '%')} | {_f(ratio, '.2f')} |"
+            f" {ranking} | {g('vet-deblur', 'all_rms'):.3f} | {sa:.3f} | {la:.3f} | {sh:.3f} |"
+            f" {worse} |"
         )
     return 0
+
+
+def _f(value: float, spec: str, unit: str = "") -> str:
+    """A summary cell; '-' where the scene has no dark pixel (NaN)."""
+    return "-" if value != value else f"{value:{spec}}{unit}"
 
 
 if __name__ == "__main__":
