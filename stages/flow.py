@@ -236,12 +236,14 @@ def picture_speed_scale(*fields: np.ndarray) -> float:
 
 
 def flow_key(max_speed: float, size: int = 112) -> np.ndarray:
-    """The colour wheel of :func:`flow_to_color` with its speed scale, (H, size, 3) uint8.
+    """The colour wheel of :func:`flow_to_color` under its speed scale, (H, size, 3) uint8.
 
     A disc whose rim is ``max_speed`` in every direction (centre: still), captioned with
-    the speed shown fully saturated.
+    that speed (the speed shown fully saturated).
     """
     import cv2
+
+    from .formats.images import captioned
 
     r = (size - 1) / 2.0
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
@@ -249,19 +251,7 @@ def flow_key(max_speed: float, size: int = 112) -> np.ndarray:
     wheel = flow_to_color(vel, max_speed)
     wheel[np.hypot(xx - r, yy - r) > r] = 255
     cv2.circle(wheel, (size // 2, size // 2), int(r), (0, 0, 0), 1, cv2.LINE_AA)
-    text = np.full((34, size, 3), 255, np.uint8)
-    for row, line in enumerate(("rim = ", f"{max_speed:.3g} px/s")):
-        cv2.putText(
-            text,
-            line,
-            (2, 13 + 15 * row),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.4,
-            (0, 0, 0),
-            1,
-            cv2.LINE_AA,
-        )
-    return np.concatenate([wheel, text], axis=0)
+    return captioned(wheel, f"{max_speed:.3g} px/s")
 
 
 def motion_picture(

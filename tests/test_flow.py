@@ -68,5 +68,6 @@ def test_motion_picture_panels_share_one_scale_and_carry_the_key():
     assert np.all(pic[22 + 5, 5] == 255)  # still is white
     # The key's rim, rightwards, is the colour of full speed to the right.
     k = flow_key(40.0, size=101)
-    rim_right = k[50, 98]  # 48 of the 50 px radius (inside the outline): 96% of full speed
+    assert k.shape == (22 + 101, 101, 3)  # the speed caption above the wheel
+    rim_right = k[22 + 50, 98]  # 48 of the 50 px radius (inside the outline): 96% of full speed
     assert np.abs(rim_right.astype(int) - flow_to_color(est, 40.0)[30, 35]).max() <= 12
