@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench evaluate-shared batch-acceptance lint format sample-data sample-hdr clean
+.PHONY: demo test test-slow bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -43,6 +43,10 @@ bench: $(STAMP)
 evaluate-shared: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.evaluate_shared eval_out
 
+# The comparison methods alone on the same runs, with the scenes dimmed 1-16x (~15 min).
+evaluate-exposure: $(STAMP)
+	$(BIN)/python -m tests.benchmarks.exposure_sweep eval_exposure
+
 # Issue 5's acceptance at full scale: 20 captures + 2 corrupt, rerun, kill -9, a separate
 # Dask scheduler with two workers, make -j2 with make/vet.mk.
 batch-acceptance: $(STAMP)
@@ -64,4 +68,4 @@ sample-hdr: $(STAMP)
 	$(MAKE) -f make/vet.mk VET=$(abspath $(VET)) CAPTURES=sample_data/captures OUT=sample_out vet-all
 
 clean:
-	rm -rf $(DEMO_DIR) sample_out eval_out .pytest_cache
+	rm -rf $(DEMO_DIR) sample_out eval_out eval_exposure .pytest_cache

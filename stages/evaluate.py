@@ -63,6 +63,9 @@ class Evaluation:
     truth_motion: np.ndarray | None = None
     frame_s: float = 1.0
     subframe_s: float = 0.01
+    radiance_scale: float = float("nan")
+    reach_subframes: float = 1.0
+    rig_changes: dict[str, Any] = field(default_factory=dict)
 
 
 def run_evaluation(
@@ -72,8 +75,17 @@ def run_evaluation(
     seed: int = 0,
     rows: tuple[str, ...] = ROWS,
     progress: Callable[[str], None] | None = None,
+    rig_changes: dict[str, Any] | None = None,
+    scale: float | None = None,
+    reach_subframes: float = 1.0,
 ) -> Evaluation:
-    """Simulate, reconstruct and score every method (see the module docstring)."""
+    """Simulate, reconstruct and score the methods in ``rows`` (module docstring).
+
+    ``rig_changes`` are :class:`~stages.rig.RigParams` fields that differ from
+    DESIGN.md's defaults; ``scale`` and ``reach_subframes`` set the radiance scale as in
+    :func:`stages.simulate.simulate`. Only the comparison captures that ``rows`` needs
+    are rendered; the VET capture always is, since it defines the dark/bright split.
+    """
     from .deblur import deblur
     from .hdr_static import hdr_static
     from .metrics import stops_error
@@ -82,15 +94,26 @@ def run_evaluation(
     from .scenes import load_scene
     from .simulate import simulate
 
+    unknown = [r for r in rows if r not in ROWS]
+    if unknown or not rows:
+        raise ValueError(f"unknown methods {unknown}; choose from {', '.join(ROWS)}")
     say = progress or (lambda msg: None)
     scene = load_scene(scene_spec, size)
     h, w = scene.radiance.shape[:2]
     motion = parse_motion(motion_spec)
-    rig = RigParams(sensor_size=(w, h))
+    changes = dict(rig_changes or {})
+    rig = RigParams(**{**changes, "sensor_size": (w, h)})
+    renders = ["vet"] + [m for m in ("long", "short", "adaptive-attenuation") if m in rows]
     say(f"simulating {w}x{h} {motion.spec}")
     t0 = time.perf_counter()
     caps = simulate(
-        scene, motion, rig, seed=seed, methods=["vet", "long", "short", "adaptive-attenuation"]
+        scene,
+        motion,
+        rig,
+        seed=seed,
+        methods=renders,
+        scale=scale,
+        reach_subframes=reach_subframes,
     )
     sim_s = time.perf_counter() - t0
     vet = caps["vet"]
@@ -104,6 +127,9 @@ def run_evaluation(
         truth_motion=vet.truth_motion,
         frame_s=rig.frame_s,
         subframe_s=rig.subframe_s,
+        radiance_scale=float(vet.radiance_scale),
+        reach_subframes=float(reach_subframes) if scale is None else float("nan"),
+        rig_changes=changes,
     )
     ev.runtime_s["simulate"] = sim_s
     plan: dict[str, Callable[[], Any]] = {
@@ -168,6 +194,8 @@ def results_markdown(ev: Evaluation) -> str:
         "Error in stops, |log2(estimate / truth)| of luminance; dark = pixels exposed the whole "
         "frame by the VET rig, bright = pixels that closed early.",
         "",
+        rig_sentence(ev),
+        "",
         "| method | all median | all p99 | all RMS | dark median | dark p99 | dark RMS "
         "| bright median | bright p99 | bright RMS | runtime s |",
         "|---|" + "---:|" * 10,
@@ -187,6 +215,23 @@ def results_markdown(ev: Evaluation) -> str:
         lines.append("'inf': the method gave a zero, negative or non-finite value there.")
     lines.append("")
     return "\n".join(lines)
+
+
+def rig_sentence(ev: Evaluation) -> str:
+    """The rig and radiance scale the captures were rendered with, as one sentence."""
+    if ev.rig_changes:
+        rig = "DESIGN.md defaults except " + ", ".join(
+            f"{k} = {v}" for k, v in sorted(ev.rig_changes.items())
+        )
+    else:
+        rig = "DESIGN.md defaults"
+    if np.isnan(ev.reach_subframes):
+        how = "as given"
+    else:
+        n = ev.reach_subframes
+        how = f"the scene's 99.9th-percentile luminance reaches the threshold in {n:g} subframe"
+        how += "" if n == 1 else "s"
+    return f"Rig: {rig}. Radiance scale {ev.radiance_scale:.6g} e-/s per scene unit ({how})."
 
 
 def _cell(value: float) -> str:
@@ -277,7 +322,8 @@ def contact_sheet(ev: Evaluation) -> np.ndarray:
 
 
 def motion_picture(ev: Evaluation) -> np.ndarray:
-    """Estimated (default deblur) and true motion side by side on one colour-wheel scale."""
+    """Estimated (default deblur) and true motion side by side on one colour-wheel scale
+    (the true motion alone when the default deblur was not run)."""
     from .flow import motion_picture as picture
 
     true = (
@@ -285,8 +331,9 @@ def motion_picture(ev: Evaluation) -> np.ndarray:
         if ev.truth_motion is not None
         else np.zeros((*ev.truth.shape[:2], 2), np.float32)
     )
-    est = ev.velocity if ev.velocity is not None else np.zeros_like(true)
-    return picture([("estimated (vet-deblur)", est), ("true", true)])
+    if ev.velocity is None:  # vet-deblur was not among the rows
+        return picture([("true", true)])
+    return picture([("estimated (vet-deblur)", ev.velocity), ("true", true)])
 
 
 def write_report(ev: Evaluation, folder: str | Path) -> list[Path]:

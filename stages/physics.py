@@ -189,9 +189,16 @@ class ClosureController:
         return self.cellmap.to_pixels(t)
 
 
-def radiance_scale(scene_luminance_p999: float, rig: RigParams) -> float:
+def radiance_scale(
+    scene_luminance_p999: float, rig: RigParams, reach_subframes: float = 1.0
+) -> float:
     """Electrons per second (at the VET sensor) per scene unit, chosen so that the
-    scene's 99.9th-percentile luminance reaches the threshold in one measuring subframe."""
+    scene's 99.9th-percentile luminance reaches the threshold in ``reach_subframes``
+    measuring subframes (DESIGN.md §2: one; more renders a dimmer scene)."""
     if not np.isfinite(scene_luminance_p999) or scene_luminance_p999 <= 0:
         raise ValueError("scene has no positive luminance to set the radiance scale from")
-    return rig.threshold_e / (rig.subframe_s * rig.measure_fraction * scene_luminance_p999)
+    if not np.isfinite(reach_subframes) or reach_subframes <= 0:
+        raise ValueError("the subframes to reach the threshold must be a positive number")
+    return rig.threshold_e / (
+        reach_subframes * rig.subframe_s * rig.measure_fraction * scene_luminance_p999
+    )

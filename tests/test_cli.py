@@ -104,6 +104,17 @@ def test_verbose_shows_traceback(tmp_path):
 def test_usage_errors_exit_2():
     assert invoke("hdr-static").exit_code == 2  # missing argument
     assert invoke("simulate", "builtin:chart", "-o", "x.exr", "--method", "bogus").exit_code == 2
+    both = invoke(
+        "simulate",
+        "builtin:chart",
+        "-o",
+        "x.exr",
+        "--radiance-scale",
+        "9",
+        "--reach-subframes",
+        "2",
+    )
+    assert both.exit_code == 2 and "not both" in both.output
     assert invoke("no-such-command").exit_code == 2
 
 

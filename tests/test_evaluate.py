@@ -55,6 +55,49 @@ def test_evaluate_writes_all_files(tmp_path):
     assert not list(out.glob(".vet-tmp-*"))
 
 
+def test_evaluate_runs_a_subset_on_a_dimmer_scene_and_says_so(tmp_path):
+    """--methods runs only those rows; --reach-subframes dims the scene (the short
+    exposure gets noisier, the scale drops by that factor) and the report states the rig."""
+    import csv
+
+    rms, scale = {}, {}
+    for n in (1, 8):
+        out = tmp_path / f"r{n}"
+        args = ["evaluate", "builtin:interior", "--size", "96x80", "--motion", "translate:30,0"]
+        args += ["--methods", "short,vet-static", "--reach-subframes", str(n)]
+        args += ["--leakage", "0.01", "-o", str(out), "-q"]
+        res = CliRunner().invoke(cli, args)
+        assert res.exit_code == 0, res.output
+        with open(out / "results.csv") as fh:
+            rows = {r["method"]: r for r in csv.DictReader(fh)}
+        assert list(rows) == ["vet-static", "short"]  # table order, not argument order
+        rms[n] = float(rows["short"]["all_rms"])
+        text = (out / "results.md").read_text()
+        assert "DESIGN.md defaults except leakage = 0.01" in text
+        assert f"threshold in {n} subframe" in text
+        scale[n] = float(text.split("Radiance scale ")[1].split()[0])
+        assert (out / "motion.png").is_file() and (out / "contact_sheet.png").is_file()
+    assert scale[8] == pytest.approx(scale[1] / 8, rel=1e-5)
+    assert rms[8] > 1.5 * rms[1]
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--methods", "vet-static,bogus"], "unknown method bogus"),
+        (["--methods", ","], "unknown method (none)"),
+        (["--radiance-scale", "10", "--reach-subframes", "2"], "not both"),
+        (["--reach-subframes", "0"], "--reach-subframes"),
+    ],
+)
+def test_evaluate_usage_errors_exit_2(tmp_path, extra, message):
+    out = tmp_path / "report"
+    res = CliRunner().invoke(cli, ["evaluate", "builtin:chart", "-o", str(out), *extra])
+    assert res.exit_code == 2, res.output
+    assert message in res.output
+    assert not out.exists()
+
+
 def test_deblur_cli_bad_capture_exits_1(tmp_path):
     bad = tmp_path / "bad.exr"
     bad.write_bytes(b"not an exr at all")

@@ -76,6 +76,24 @@ def test_closure_time_matches_the_threshold_arithmetic():
     assert set(np.round(np.unique(cap.T) / rig.subframe_s).astype(int)) <= {10, 11, 12}
 
 
+def test_reach_subframes_sets_when_the_p999_pixel_closes():
+    """The radiance scale puts the scene's 99.9th-percentile luminance at the threshold
+    after ``reach_subframes`` subframes: on a flat scene every pixel crosses then (shot
+    noise: give or take one subframe) and closes the latency later."""
+    rig = RigParams(sensor_size=(40, 32), read_noise_e=0.0, dark_current_e_s=0.0)
+    scene = flat_scene(3.0)
+    base = None
+    for n in (1, 4, 8):
+        cap = simulate(scene, parse_motion("none"), rig, seed=3, reach_subframes=n)["vet"]
+        base = base or cap.radiance_scale
+        assert cap.radiance_scale == pytest.approx(base / n, rel=1e-6)
+        closes = np.round(cap.T / rig.subframe_s) - rig.latency_subframes
+        assert np.all(np.abs(closes - n) <= 1), (n, np.unique(closes))
+        assert np.median(closes) in (n, n + 1)
+    with pytest.raises(ValueError, match="positive"):
+        simulate(scene, parse_motion("none"), rig, reach_subframes=0.0)
+
+
 def test_leakage_and_dark_current_enter_the_vet_image():
     rig = RigParams(sensor_size=(40, 32), read_noise_e=0.0, leakage=0.01)
     value = rig.threshold_e / rig.subframe_s  # crosses in subframe 0, closes at 2 tau

@@ -4,7 +4,20 @@ from __future__ import annotations
 
 import click
 
+from stages.evaluate import ROWS
+
 from ._common import command, log, verbosity_options
+from .options import rig_options, rig_overrides, scale_choice, scale_options
+
+
+def _methods(ctx: click.Context, param: click.Parameter, value: str) -> tuple[str, ...]:
+    names = tuple(dict.fromkeys(v.strip() for v in value.split(",") if v.strip()))
+    bad = [n for n in names if n not in ROWS]
+    if bad or not names:
+        raise click.BadParameter(
+            f"unknown method {', '.join(bad) or '(none)'}; choose from {', '.join(ROWS)}"
+        )
+    return tuple(n for n in ROWS if n in names)
 
 
 @click.command(
@@ -18,6 +31,10 @@ scored in stops against the true scene, split into dark pixels (exposed the whol
 and bright ones. Writes results.csv, results.md, errors.png, contact_sheet.png,
 exposure_time.png and motion.png into the folder given with -o.
 
+--methods runs a subset (the comparison methods alone take seconds; each deblur takes
+about a minute per megapixel). The rig and radiance-scale options are those of
+`vet simulate`; the report states which were used.
+
 \b
 Example:
   vet evaluate builtin:interior --motion translate:30,0 --size 320x256 -o report/
@@ -28,14 +45,34 @@ Example:
 @click.option("--motion", default="translate:30,0", show_default=True, help="Motion SPEC.")
 @click.option("--size", default=None, metavar="WxH", help="Resample the scene to this sensor size.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed for all noise.")
+@click.option(
+    "--methods",
+    default=",".join(ROWS),
+    show_default=True,
+    callback=_methods,
+    help="Comma-separated table rows to run.",
+)
+@scale_options
+@rig_options
 @verbosity_options
 @command("evaluate")
-def cli(scene: str, output: str, motion: str, size: str | None, seed: int) -> None:
+def cli(
+    scene: str, output: str, motion: str, size: str | None, seed: int, methods: tuple, **kwargs
+) -> None:
     from stages.evaluate import results_markdown, run_evaluation, write_report
     from stages.scenes import parse_size
 
+    scale, reach = scale_choice(kwargs)
     ev = run_evaluation(
-        scene, motion, parse_size(size), seed, progress=lambda m: log.info("evaluate: %s", m)
+        scene,
+        motion,
+        parse_size(size),
+        seed,
+        rows=methods,
+        progress=lambda m: log.info("evaluate: %s", m),
+        rig_changes=rig_overrides(kwargs),
+        scale=scale,
+        reach_subframes=reach,
     )
     write_report(ev, output)
     log.info("%s", results_markdown(ev))

@@ -1,4 +1,4 @@
-"""Options shared by several commands (rig parameters)."""
+"""Options shared by several commands (rig parameters, the simulated radiance scale)."""
 
 from __future__ import annotations
 
@@ -44,3 +44,32 @@ def rig_overrides(kwargs: dict[str, Any]) -> dict[str, Any]:
 
         out["lcos_cells"] = parse_size(lcos)
     return out
+
+
+def scale_options(f: Callable) -> Callable:
+    """``--radiance-scale`` (absolute) or ``--reach-subframes`` (relative to the scene)."""
+    f = click.option(
+        "--reach-subframes",
+        type=click.FloatRange(min=0, min_open=True),
+        default=None,
+        metavar="N",
+        help="Set the radiance scale so that the scene's 99.9th-percentile luminance "
+        "reaches the threshold in N measuring subframes [1]; 8 is a scene three stops "
+        "dimmer.",
+    )(f)
+    f = click.option(
+        "--radiance-scale",
+        type=click.FloatRange(min=0, min_open=True),
+        default=None,
+        help="Electrons/s per scene unit [p99.9 luminance reaches the threshold in one subframe].",
+    )(f)
+    return f
+
+
+def scale_choice(kwargs: dict[str, Any]) -> tuple[float | None, float]:
+    """Pop :func:`scale_options` out of kwargs as ``(scale, reach_subframes)``."""
+    scale = kwargs.pop("radiance_scale", None)
+    reach = kwargs.pop("reach_subframes", None)
+    if scale is not None and reach is not None:
+        raise click.UsageError("give --radiance-scale or --reach-subframes, not both")
+    return scale, 1.0 if reach is None else float(reach)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from ._common import Progress, command, log, verbosity_options
-from .options import rig_options, rig_overrides
+from .options import rig_options, rig_overrides, scale_choice, scale_options
 
 BUILTINS = "interior, chart"
 METHODS = ["vet", "long", "short", "adaptive-attenuation"]
@@ -50,12 +50,7 @@ Example:
     show_default=True,
     help="Time bins of measuring images stored in the capture (0: none).",
 )
-@click.option(
-    "--radiance-scale",
-    type=float,
-    default=None,
-    help="Electrons/s per scene unit [p99.9 luminance reaches the threshold in one subframe].",
-)
+@scale_options
 @rig_options
 @verbosity_options
 @command("simulate")
@@ -67,7 +62,6 @@ def cli(
     size: str | None,
     method: str,
     measure_bins: int,
-    radiance_scale: float | None,
     **kwargs,
 ) -> None:
     from stages.formats import write_capture
@@ -76,6 +70,7 @@ def cli(
     from stages.scenes import load_scene, parse_size
     from stages.simulate import simulate
 
+    scale, reach = scale_choice(kwargs)
     overrides = rig_overrides(kwargs)
     mot = parse_motion(motion)
     sc = load_scene(scene, parse_size(size))
@@ -91,7 +86,8 @@ def cli(
         methods=[method],
         measure_bins=measure_bins,
         progress=progress,
-        scale=radiance_scale,
+        scale=scale,
+        reach_subframes=reach,
     )
     progress.finish()
     write_capture(output, caps[method])

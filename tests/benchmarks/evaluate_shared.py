@@ -67,6 +67,24 @@ def sweep_motions(path: Path, w: int, h: int) -> dict[str, str]:
     return motions
 
 
+def run_evaluate(
+    path: Path, spec: str, size: tuple[int, int], folder: Path, *extra: str
+) -> dict[str, dict[str, str]] | None:
+    """`vet evaluate` (seed 0, plus ``extra`` options) into ``folder``; its results.csv
+    rows by method, or None (and a line saying why) when it failed."""
+    w, h = size
+    t0 = time.perf_counter()
+    cmd = vet_cmd("-q", "evaluate", path, "--motion", spec, "--size", f"{w}x{h}", "--seed", "0")
+    res = subprocess.run([*cmd, *extra, "-o", str(folder)], capture_output=True, text=True)
+    if res.returncode != 0:
+        print(f"{path.stem} {spec}: FAILED: {res.stderr.strip().splitlines()[-1:]}")
+        return None
+    took = time.perf_counter() - t0
+    print(f"{path.stem} {spec} {' '.join(extra)} ({w}x{h}): {took:.0f} s", flush=True)
+    with open(folder / "results.csv") as f:
+        return {r["method"]: r for r in csv.DictReader(f)}
+
+
 def main(argv: list[str]) -> int:
     if not SHARED_HDR.is_dir():
         print("evaluate-shared: ../shared/data/hdr absent, skipped")
@@ -85,27 +103,9 @@ def main(argv: list[str]) -> int:
         motions = sweep_motions(path, w, h)
         for tag, spec in motions.items():
             folder = out / f"{name}_{tag}"
-            t0 = time.perf_counter()
-            cmd = vet_cmd(
-                "-q",
-                "evaluate",
-                path,
-                "--motion",
-                spec,
-                "--size",
-                f"{w}x{h}",
-                "--seed",
-                "0",
-                "-o",
-                folder,
-            )
-            res = subprocess.run(cmd, capture_output=True, text=True)
-            if res.returncode != 0:
-                print(f"{name} {spec}: FAILED: {res.stderr.strip().splitlines()[-1:]}")
+            table = run_evaluate(path, spec, (w, h), folder)
+            if table is None:
                 continue
-            print(f"{name} {spec} ({w}x{h}): {time.perf_counter() - t0:.0f} s", flush=True)
-            with open(folder / "results.csv") as f:
-                table = {r["method"]: r for r in csv.DictReader(f)}
             rows.append((name, tag, table))
     print(
         "\ndark-pixel RMS, stops (acceptance: deblur >= 30% below static; deblur < paper <= static"
