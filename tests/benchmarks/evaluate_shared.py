@@ -68,19 +68,20 @@ def sweep_motions(path: Path, w: int, h: int) -> dict[str, str]:
 
 
 def run_evaluate(
-    path: Path, spec: str, size: tuple[int, int], folder: Path, *extra: str
+    path: Path, spec: str, size: tuple[int, int], folder: Path, *extra: str, seed: int = 0
 ) -> dict[str, dict[str, str]] | None:
-    """`vet evaluate` (seed 0, plus ``extra`` options) into ``folder``; its results.csv
-    rows by method, or None (and a line saying why) when it failed."""
+    """`vet evaluate` (plus ``extra`` options) into ``folder``; its results.csv rows by
+    method, or None (and a line saying why) when it failed."""
     w, h = size
     t0 = time.perf_counter()
-    cmd = vet_cmd("-q", "evaluate", path, "--motion", spec, "--size", f"{w}x{h}", "--seed", "0")
+    cmd = vet_cmd("-q", "evaluate", path, "--motion", spec, "--size", f"{w}x{h}")
+    cmd += ["--seed", str(seed)]
     res = subprocess.run([*cmd, *extra, "-o", str(folder)], capture_output=True, text=True)
     if res.returncode != 0:
         print(f"{path.stem} {spec}: FAILED: {res.stderr.strip().splitlines()[-1:]}")
         return None
     took = time.perf_counter() - t0
-    print(f"{path.stem} {spec} {' '.join(extra)} ({w}x{h}): {took:.0f} s", flush=True)
+    print(f"{path.stem} {spec} {' '.join(extra)} seed {seed} ({w}x{h}): {took:.0f} s", flush=True)
     with open(folder / "results.csv") as f:
         return {r["method"]: r for r in csv.DictReader(f)}
 
