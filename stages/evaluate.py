@@ -64,7 +64,7 @@ class Evaluation:
     frame_s: float = 1.0
     subframe_s: float = 0.01
     radiance_scale: float = float("nan")
-    reach_subframes: float = 1.0
+    reach_subframes: float | None = 1.0  # None: the radiance scale was given
     rig_changes: dict[str, Any] = field(default_factory=dict)
 
 
@@ -128,7 +128,7 @@ def run_evaluation(
         frame_s=rig.frame_s,
         subframe_s=rig.subframe_s,
         radiance_scale=float(vet.radiance_scale),
-        reach_subframes=float(reach_subframes) if scale is None else float("nan"),
+        reach_subframes=float(reach_subframes) if scale is None else None,
         rig_changes=changes,
     )
     ev.runtime_s["simulate"] = sim_s
@@ -225,7 +225,7 @@ def rig_sentence(ev: Evaluation) -> str:
         )
     else:
         rig = "DESIGN.md defaults"
-    if np.isnan(ev.reach_subframes):
+    if ev.reach_subframes is None:
         how = "as given"
     else:
         n = ev.reach_subframes

@@ -81,6 +81,15 @@ def test_evaluate_runs_a_subset_on_a_dimmer_scene_and_says_so(tmp_path):
     assert rms[8] > 1.5 * rms[1]
 
 
+def test_evaluate_with_a_given_radiance_scale_reports_it(tmp_path):
+    out = tmp_path / "r"
+    args = ["evaluate", "builtin:chart", "--size", "64x48", "--methods", "long"]
+    res = CliRunner().invoke(cli, [*args, "--radiance-scale", "50", "-o", str(out), "-q"])
+    assert res.exit_code == 0, res.output
+    text = (out / "results.md").read_text()
+    assert "Rig: DESIGN.md defaults. Radiance scale 50 e-/s per scene unit (as given)." in text
+
+
 @pytest.mark.parametrize(
     "extra, message",
     [
