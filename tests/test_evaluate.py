@@ -195,3 +195,18 @@ def test_report_marks_empty_regions_and_infinite_errors():
     ev.scores = {"vet-deblur": _scores(0.5, 40)}
     md = results_markdown(ev)
     assert "No pixel" not in md and "'inf'" not in md and "| 0.300 |" in md
+
+
+def test_motion_picture_shows_no_estimate_when_deblur_did_not_run():
+    """Without vet-deblur there is no estimated motion: one panel (the truth), not a blank
+    'estimated' panel beside it."""
+    from stages.evaluate import Evaluation, motion_picture
+
+    ev = Evaluation(scene="s.exr", motion="translate:30,0", size=(40, 30), seed=0)
+    ev.truth = np.ones((30, 40, 1), np.float32)
+    ev.truth_motion = np.tile(np.float32([30.0, 0.0]), (30, 40, 1))
+    alone = motion_picture(ev)
+    ev.velocity = ev.truth_motion.copy()
+    both = motion_picture(ev)
+    assert alone.shape[0] == both.shape[0]
+    assert both.shape[1] - alone.shape[1] >= 40  # the estimated panel's width and more
