@@ -67,6 +67,11 @@ def sweep_motions(path: Path, w: int, h: int) -> dict[str, str]:
     return motions
 
 
+def option_value(argv: list[str], name: str, default: str) -> str:
+    """The word after ``name`` in ``argv``, else ``default``."""
+    return argv[argv.index(name) + 1] if name in argv else default
+
+
 def run_evaluate(
     path: Path, spec: str, size: tuple[int, int], folder: Path, *extra: str, seed: int = 0
 ) -> dict[str, dict[str, str]] | None:
@@ -77,11 +82,12 @@ def run_evaluate(
     cmd = vet_cmd("-q", "evaluate", path, "--motion", spec, "--size", f"{w}x{h}")
     cmd += ["--seed", str(seed)]
     res = subprocess.run([*cmd, *extra, "-o", str(folder)], capture_output=True, text=True)
+    run = f"{path.stem} {spec} {' '.join(extra)} seed {seed} ({w}x{h})"
     if res.returncode != 0:
-        print(f"{path.stem} {spec}: FAILED: {res.stderr.strip().splitlines()[-1:]}")
+        why = (res.stderr.strip().splitlines() or [f"exit status {res.returncode}"])[-1]
+        print(f"{run}: FAILED: {why}", flush=True)
         return None
-    took = time.perf_counter() - t0
-    print(f"{path.stem} {spec} {' '.join(extra)} seed {seed} ({w}x{h}): {took:.0f} s", flush=True)
+    print(f"{run}: {time.perf_counter() - t0:.0f} s", flush=True)
     with open(folder / "results.csv") as f:
         return {r["method"]: r for r in csv.DictReader(f)}
 
@@ -91,9 +97,7 @@ def main(argv: list[str]) -> int:
         print("evaluate-shared: ../shared/data/hdr absent, skipped")
         return 0
     out = Path(argv[0]) if argv else Path("eval_out")
-    scale = 1.0
-    if "--size-scale" in argv:
-        scale = float(argv[argv.index("--size-scale") + 1])
+    scale = float(option_value(argv, "--size-scale", "1"))
     names = [a for a in argv[1:] if a in SCENES] or SCENES
     out.mkdir(exist_ok=True)
     rows = []

@@ -30,13 +30,15 @@ import sys
 from pathlib import Path
 
 from tests.benchmarks.common import SHARED_HDR
-from tests.benchmarks.evaluate_shared import SCENES, run_evaluate, scene_size, sweep_motions
+from tests.benchmarks.evaluate_shared import (
+    SCENES,
+    option_value,
+    run_evaluate,
+    scene_size,
+    sweep_motions,
+)
 
 METHODS = ("vet-static", "adaptive-attenuation", "long", "short")
-
-
-def _option(argv: list[str], name: str, default: str) -> str:
-    return argv[argv.index(name) + 1] if name in argv else default
 
 
 def _cells(table: dict[str, dict[str, str]]) -> dict[str, float]:
@@ -52,9 +54,9 @@ def main(argv: list[str]) -> int:
         print("evaluate-exposure: ../shared/data/hdr absent, skipped")
         return 0
     out = Path(argv[0]) if argv else Path("eval_exposure")
-    reaches = [float(n) for n in _option(argv, "--reach", "1,2,4,8,16").split(",")]
-    seeds = [int(s) for s in _option(argv, "--seeds", "0").split(",")]
-    size_scale = float(_option(argv, "--size-scale", "1"))
+    reaches = [float(n) for n in option_value(argv, "--reach", "1,2,4,8,16").split(",")]
+    seeds = [int(s) for s in option_value(argv, "--seeds", "0").split(",")]
+    size_scale = float(option_value(argv, "--size-scale", "1"))
     names = [a for a in argv[1:] if a in SCENES] or SCENES
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -100,7 +102,8 @@ def main(argv: list[str]) -> int:
         for key in dict.fromkeys((name, tag, n) for name, tag, n, _, _ in rows):
             at = [c for name, tag, n, _, c in rows if (name, tag, n) == key]
             diff = [c["dark adaptive"] - c["dark static"] for c in at]
-            if any(d != d for d in diff):  # no dark pixel
+            if any(d != d for d in diff):
+                print(f"| {key[0]} | {key[1]} | {key[2]:g} | {len(at)} | - | no dark pixel |")
                 continue
             wins = sum(d > 0 for d in diff)
             print(
