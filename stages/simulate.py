@@ -1,7 +1,10 @@
 """Render what a VET rig records from an HDR scene with known motion.
 
 One pass over the K measuring subframes renders every requested method from the same
-scene, motion and seed, so they can be compared on equal terms:
+scene, motion and noise, so they can be compared on equal terms: the methods' images are
+exposed with one shared noise realisation (:class:`stages.physics.SensorNoise`), so a
+pixel that two methods expose alike records the same value in both, and differences
+between methods come from the methods, not from independent noise draws.
 
 ``vet``
     The VET rig: measuring subframes with their own noise, host threshold on the LCoS
@@ -37,12 +40,19 @@ import numpy as np
 
 from .formats.capture import Capture, provenance_entry
 from .motion import Motion
-from .physics import CellMap, ClosureController, brightest_channel, expose, radiance_scale
+from .physics import (
+    CellMap,
+    ClosureController,
+    SensorNoise,
+    brightest_channel,
+    expose,
+    noise_streams,
+    radiance_scale,
+)
 from .rig import RigParams
 from .scenes import Scene, luminance
 
 METHODS = ("vet", "long", "short", "adaptive-attenuation")
-_RNG_STREAM = {m: i for i, m in enumerate(METHODS)}
 
 
 def measure_bin_edges(n_subframes: int, n_bins: int) -> np.ndarray:
@@ -73,8 +83,9 @@ def simulate(
     rig : RigParams
         Rig physics; ``sensor_size`` must equal the scene's (W, H).
     seed : int
-        Seeds all noise. Each method draws from its own stream, so a method's capture is
-        the same whichever other methods are rendered beside it.
+        Seeds all noise: one stream for the measuring subframes, one for the noise
+        realisation that every method's image shares. A method's capture is the same
+        whichever other methods are rendered beside it.
     methods : sequence of str
         Any of :data:`METHODS`.
     measure_bins : int
@@ -107,12 +118,12 @@ def simulate(
     tau, tf = rig.subframe_s, rig.frame_s
     tail_s = tf - k_sub * tau
     dark = rig.dark_current_e_s
-    ss = np.random.SeedSequence(seed)
-    streams = ss.spawn(len(METHODS) + 1)
-    rngs = {m: np.random.default_rng(streams[_RNG_STREAM[m]]) for m in METHODS}
+    exposure_stream, subframe_stream = noise_streams(seed)
 
     want = set(methods)
     shape = (h, w, nch)
+    # The methods' images share one noise realisation (common random numbers).
+    noise = SensorNoise(shape, np.random.default_rng(exposure_stream))
     cellmap = CellMap.for_rig(rig, (h, w)) if want & {"vet", "adaptive-attenuation"} else None
     ctrl = ClosureController(rig, cellmap) if "vet" in want else None
     vet_e = np.zeros(shape, np.float32) if "vet" in want else None
@@ -132,7 +143,7 @@ def simulate(
     dark_sub = np.float32(dark * tau)
     # One seeded stream per measuring subframe: frames can be rendered and exposed on
     # worker threads (numpy and OpenCV release the GIL) in any order, same result.
-    sub_streams = streams[-1].spawn(k_sub)
+    sub_streams = subframe_stream.spawn(k_sub)
 
     def rate_at(t: float) -> np.ndarray:
         return rate_still if still else motion.render(radiance, t) * np.float32(scale)
@@ -190,7 +201,7 @@ def simulate(
 
     out: dict[str, Capture] = {}
     if ctrl is not None:
-        img = expose(vet_e + np.float32(dark * tf), rig, rngs["vet"])
+        img = expose(vet_e + np.float32(dark * tf), rig, noise)
         mt = None
         if measure is not None:
             mt = np.stack([edges[:-1] * tau, edges[1:] * tau], axis=1)
@@ -206,20 +217,18 @@ def simulate(
             cap.meta["measure_subframes"] = np.diff(edges).tolist()
         out["vet"] = cap
     if "long" in want:
-        img = expose(full_e + np.float32(dark * tf), rig, rngs["long"])
+        img = expose(full_e + np.float32(dark * tf), rig, noise)
         out["long"] = Capture(
             I=img, T=np.full((h, w), tf, np.float32), meta=meta_for("long", tf, False), **common
         )
     if "short" in want:
-        img = expose(short_e + np.float32(dark * tau), rig, rngs["short"])
+        img = expose(short_e + np.float32(dark * tau), rig, noise)
         out["short"] = Capture(
             I=img, T=np.full((h, w), tau, np.float32), meta=meta_for("short", tau, False), **common
         )
     if "adaptive-attenuation" in want:
         a = attenuation_from_previous_frame(radiance, motion, rig, scale, cellmap)
-        img = expose(
-            full_e * a[..., None] + np.float32(dark * tf), rig, rngs["adaptive-attenuation"]
-        )
+        img = expose(full_e * a[..., None] + np.float32(dark * tf), rig, noise)
         out["adaptive-attenuation"] = Capture(
             I=img,
             T=np.full((h, w), tf, np.float32),

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from stages.motion import ObjectMotion, Translate, parse_motion
-from stages.physics import CellMap, ClosureController, expose, shot_noise
+from stages.physics import (
+    CellMap,
+    ClosureController,
+    SensorNoise,
+    expose,
+    poisson_quantile,
+    shot_noise,
+)
 from stages.rig import RigParams
 from stages.scenes import Scene
 from stages.simulate import simulate
@@ -21,6 +28,37 @@ def test_shot_noise_has_poisson_mean_and_variance(lam, rng):
     x = shot_noise(np.full(200_000, lam, np.float32), rng)
     assert x.mean() == pytest.approx(lam, rel=0.01, abs=0.01)
     assert x.var() == pytest.approx(lam, rel=0.03)
+
+
+@pytest.mark.parametrize("lam", [0.5, 5.0, 29.0, 31.0, 400.0, 5000.0])
+def test_shared_noise_has_poisson_mean_and_variance(lam, rng):
+    x = SensorNoise((200_000,), rng).shot(np.full(200_000, lam, np.float32))
+    assert x.mean() == pytest.approx(lam, rel=0.01, abs=0.01)
+    assert x.var() == pytest.approx(lam, rel=0.03)
+    if lam < 30:  # exact Poisson counts below the normal approximation's threshold
+        assert np.all(x == np.round(x))
+
+
+def test_poisson_quantile_matches_scipy(rng):
+    from scipy import stats
+
+    lam = rng.uniform(0, 30, 50_000)
+    lam[:100] = 0.0
+    u = rng.uniform(0, 1, lam.shape)
+    np.testing.assert_array_equal(poisson_quantile(u, lam), stats.poisson.ppf(u, lam))
+
+
+def test_shared_noise_couples_exposures(rng):
+    """Common random numbers: the same expected electrons give the same DN; more light
+    never gives fewer electrons in any pixel."""
+    rig = RigParams(sensor_size=(4, 4))
+    noise = SensorNoise((100_000,), rng)
+    lam = rng.uniform(0, 200, 100_000).astype(np.float32)
+    a = expose(lam, rig, noise)
+    np.testing.assert_array_equal(a, expose(lam.copy(), rig, noise))
+    assert np.all(noise.shot(lam * np.float32(1.5)) >= noise.shot(lam))
+    with pytest.raises(ValueError, match="noise drawn for"):
+        noise.shot(lam[:10])
 
 
 def test_expose_clips_at_full_well_and_adc(rng):
@@ -121,6 +159,27 @@ def test_method_streams_are_independent_of_which_methods_run(small_scene):
     alone = simulate(small_scene, parse_motion("none"), rig, seed=4, methods=["long"])["long"]
     both = simulate(small_scene, parse_motion("none"), rig, seed=4, methods=["vet", "long"])["long"]
     np.testing.assert_array_equal(alone.I, both.I)
+
+
+def test_methods_share_noise_where_they_expose_alike(small_scene):
+    """A pixel exposed the whole frame through an open cell records the same value in the
+    VET, long and adaptive-attenuation (transmittance 1) captures."""
+    rig = RigParams(sensor_size=(96, 80))
+    caps = simulate(
+        small_scene,
+        parse_motion("translate:30,0"),
+        rig,
+        seed=2,
+        methods=["vet", "long", "adaptive-attenuation"],
+        reach_subframes=8,
+    )
+    vet, long_, adapt = caps["vet"], caps["long"], caps["adaptive-attenuation"]
+    dark = vet.T >= rig.frame_s * (1 - 1e-6)
+    open_ = dark & (adapt.transmittance >= 1)
+    assert dark.sum() > 500 and open_.sum() > 500
+    np.testing.assert_array_equal(vet.I[dark], long_.I[dark])
+    np.testing.assert_array_equal(vet.I[open_], adapt.I[open_])
+    assert not np.array_equal(vet.I, long_.I)
 
 
 def test_truth_is_scene_at_t0_and_motion_field():

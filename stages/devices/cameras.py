@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import DeviceError, InputError
 from ..motion import Motion
-from ..physics import CellMap, expose
+from ..physics import CellMap, SensorNoise, expose, noise_streams
 from ..rig import RigParams
 
 
@@ -218,7 +218,7 @@ class EmulatedMeasurementCamera(Camera):
         super().__init__()
         self.rig = rig
         self.source = _SceneSource(radiance, motion, scale)
-        self.streams = np.random.SeedSequence(seed).spawn(5)[-1].spawn(rig.n_subframes + 1)
+        self.streams = noise_streams(seed)[1].spawn(rig.n_subframes + 1)
         self.drop = set(drop)
         self.realtime = realtime
         self._frames: np.ndarray | None = None
@@ -299,7 +299,7 @@ class EmulatedVETCamera(Camera):
             rig.homography if true_homography is None else true_homography, dtype=float
         )
         self.cellmap = CellMap(hom, rig.lcos_cells, (h, w))
-        self.rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(5)[0])
+        self.rng = np.random.default_rng(noise_streams(seed)[0])
         self._frames = 0
 
     def _do_open(self) -> None:
@@ -330,7 +330,9 @@ class EmulatedVETCamera(Camera):
             trans = np.where(per_pixel > k_sub, np.float32(1.0), eps)
             acc += self.source.rate(k_sub * tau + tail / 2) * np.float32(tail) * trans
         acc += np.float32(rig.dark_current_e_s * rig.frame_s)
-        frame = Frame(expose(acc, rig, self.rng), self._frames, 0.0)
+        # A frame's noise is drawn as simulate draws the noise its methods share.
+        noise = SensorNoise(acc.shape, self.rng)
+        frame = Frame(expose(acc, rig, noise), self._frames, 0.0)
         self._frames += 1
         return frame
 
