@@ -69,26 +69,49 @@ def _equalise(values: np.ndarray, levels: np.ndarray) -> np.ndarray:
     return np.clip(v, 0, 255).astype(np.uint8)
 
 
-def _flow_pair(a: np.ndarray, b: np.ndarray, method: str) -> np.ndarray:
+def _flow_pair(
+    a: np.ndarray, b: np.ndarray, method: str, init: np.ndarray | None = None
+) -> np.ndarray:
+    """Dense flow from ``a`` to ``b`` (H, W, 2) px; ``init`` is a starting flow, which
+    both methods refine from their coarsest scale (a displacement far beyond what the
+    pyramid finds on its own, such as a predicted long-baseline one, is then found)."""
     import cv2
 
+    start = None if init is None else np.ascontiguousarray(init, np.float32).copy()
     if method == "farneback":
         return cv2.calcOpticalFlowFarneback(
             a,
             b,
-            None,
+            start,
             pyr_scale=0.5,
             levels=5,
             winsize=21,
             iterations=5,
             poly_n=7,
             poly_sigma=1.5,
-            flags=0,
+            flags=0 if start is None else cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
     if method == "dis":
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-        return dis.calc(a, b, None)
+        return dis.calc(a, b, start)
     raise ValueError(f"unknown flow method {method!r}; choose from {', '.join(FLOW_METHODS)}")
+
+
+def warp_residual(a: np.ndarray, b: np.ndarray, flow: np.ndarray, sigma: float = 2.0) -> np.ndarray:
+    """Local mean squared difference between ``a`` and ``b`` sampled along ``flow`` (how
+    well the flow explains the pair), pooled over a Gaussian of ``sigma`` px."""
+    import cv2
+
+    h, w = a.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    warped = cv2.remap(
+        b.astype(np.float32),
+        xx + flow[..., 0],
+        yy + flow[..., 1],
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    return cv2.GaussianBlur((warped - a.astype(np.float32)) ** 2, (0, 0), sigma)
 
 
 def estimate_velocity(

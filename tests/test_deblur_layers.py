@@ -93,9 +93,13 @@ def object_capture():
     return _vet(builtin_interior(128, 96), "object:32,24,64,48:40,10", seed=2)
 
 
-def test_layer_estimate_finds_the_object():
-    # A textured scene (on smooth regions the layer is ambiguous and left still).
-    cap = _vet(builtin_chart(128, 96), "object:32,24,64,48:40,10", seed=2)
+@pytest.mark.parametrize("seed", range(6))
+def test_layer_estimate_finds_the_object(seed):
+    # A textured scene (on smooth regions the layer is ambiguous and left still). The
+    # object travels 37 px of this 128 px frame: the flows over the longer baselines find
+    # it only when started from the shorter ones' prediction (on half of these noise
+    # draws the estimate missed it before).
+    cap = _vet(builtin_chart(128, 96), "object:32,24,64,48:40,10", seed=seed)
     est = estimate_layers(cap)
     moving = [v for v in est.layer_velocities if np.hypot(*v) > 0]
     assert len(moving) == 1
@@ -234,19 +238,15 @@ def test_layers_no_pixel_keeps_are_dropped():
 
 
 def test_a_candidate_layer_no_point_keeps_leaves_a_still_estimate(monkeypatch):
-    # A fine random texture seen on a coarse working grid: the flow votes give a moving
-    # candidate, but no point shows clear evidence for it. The estimate is then the
-    # still scene (this once crashed in the second assignment, with no moving layer).
-    import cv2
-
+    # The flow votes give a moving candidate, but no point shows evidence for it (here:
+    # the track evidence is withheld). The estimate is then the still scene (this once
+    # crashed in the second assignment, with no moving layer).
     from stages.deblur import layers
-    from stages.scenes import Scene
 
-    rng = np.random.default_rng(0)
-    tex = cv2.GaussianBlur(rng.normal(0, 1, (128, 160)).astype(np.float32), (0, 0), 1.0)
-    img = np.exp(1.5 * tex / tex.std()).astype(np.float32)[..., None]
-    cap = _vet(Scene(img, ["Y"], "texture"), "object:40,32,80,64:40,10", seed=0)
-    monkeypatch.setattr(layers, "MAX_WORK_PX", 64)
+    cap = _vet(builtin_chart(128, 96), "object:32,24,64,48:40,10", seed=0)
+    monkeypatch.setattr(
+        layers, "_track_score", lambda lv, *a, **k: np.zeros(lv.shape[1:], np.float32)
+    )
     calls = []
     assign = layers._assign
     monkeypatch.setattr(layers, "_assign", lambda *a: calls.append(len(a[2])) or assign(*a))

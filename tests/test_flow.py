@@ -71,3 +71,34 @@ def test_motion_picture_panels_share_one_scale_and_carry_the_key():
     assert k.shape == (22 + 101, 101, 3)  # the speed caption above the wheel
     rim_right = k[22 + 50, 98]  # 48 of the 50 px radius (inside the outline): 96% of full speed
     assert np.abs(rim_right.astype(int) - flow_to_color(est, 40.0)[30, 35]).max() <= 12
+
+
+@pytest.mark.parametrize("method", ["dis", "farneback"])
+def test_flow_started_from_a_prediction_finds_a_long_displacement(method):
+    """25 px on a 128 px image is beyond what either pyramid finds on its own; started
+    from a prediction 3 px off, both find it, and the warp residual says which is right."""
+    import cv2
+
+    from stages.flow import _flow_pair, warp_residual
+
+    rng = np.random.default_rng(0)
+    g = cv2.GaussianBlur(rng.random((96, 128)).astype(np.float32), (0, 0), 2)
+    a = (255 * (g - g.min()) / (g.max() - g.min())).astype(np.uint8)
+    b = cv2.warpAffine(
+        a, np.float32([[1, 0, 25], [0, 1, 4]]), (128, 96), borderMode=cv2.BORDER_REFLECT
+    )
+    inner = (slice(20, 70), slice(30, 100))
+    plain = _flow_pair(a, b, method)
+    start = np.zeros((96, 128, 2), np.float32)
+    start[...] = (23, 2)
+    guided = _flow_pair(a, b, method, init=start)
+    assert np.median(guided[inner], axis=(0, 1)) == pytest.approx([25, 4], abs=0.2)
+    assert np.median(np.hypot(*(plain[inner] - (25, 4)).T)) > 5
+    truth = np.zeros_like(start)
+    truth[...] = (25, 4)
+    residual = {
+        k: np.median(warp_residual(a, b, f)[inner])
+        for k, f in (("truth", truth), ("plain", plain), ("guided", guided))
+    }
+    assert residual["truth"] < 1.0 and residual["guided"] < 1.0
+    assert residual["plain"] > 100 * max(residual["guided"], 0.01)

@@ -59,6 +59,11 @@ MIN_SPEED_PX_S = 1.0
 MIN_MODE_SHARE = 0.04
 #: At most this many moving layers.
 MAX_MOVING_LAYERS = 3
+#: Candidate layers whose refined velocities differ by less than this (working-grid
+#: px/s) are one layer: the vote histogram resolves modes about 3 px/s apart (its peak
+#: suppression radius), and a partly converged long-baseline flow on one object votes a
+#: second, slower mode near the first.
+SAME_LAYER_PX_S = 4.0
 #: Log-likelihood ratio (nats) a point needs to leave the default layer.
 EVIDENCE_NATS = 3.0
 #: Neighbourhoods (Gaussian sigma, working-grid px) over which the evidence is pooled.
@@ -280,13 +285,17 @@ def dense_long_baseline(lv: np.ndarray, slv: np.ndarray, centres: np.ndarray, me
     """Velocity votes from flows over long baselines, and a per-pixel least-squares fit.
 
     Flows run from the first bin to every later one and from every bin to the last (in
-    the earlier bin's coordinates). Returns ``votes`` (P, H, W, 2) px/s with weights
+    the earlier bin's coordinates), each pair computed twice: from scratch, and started
+    from the displacement its predecessor's velocity predicts for its baseline (a moving
+    object's long-baseline displacement can be far beyond what the flow's pyramid finds
+    on its own: 30 px on a 128 px image); each pixel keeps the flow that better explains
+    the pair (:func:`stages.flow.warp_residual`). Returns ``votes`` (P, H, W, 2) px/s with weights
     ``(P, H, W)`` (confidence times baseline), the per-pixel fit of the flows from the
     first bin (H, W, 2), and the per-pixel confidence (H, W).
     """
     import cv2
 
-    from ..flow import _flow_pair
+    from ..flow import _flow_pair, warp_residual
 
     frames = _equalise_all(lv)
     nb, h, w = lv.shape
@@ -300,9 +309,17 @@ def dense_long_baseline(lv: np.ndarray, slv: np.ndarray, centres: np.ndarray, me
     votes = np.empty((len(pairs), h, w, 2), np.float32)
     wts = np.empty((len(pairs), h, w), np.float32)
     for i, (a, b) in enumerate(pairs):
-        dt = float(centres[b] - centres[a])
-        votes[i] = _flow_pair(frames[a], frames[b], method) / np.float32(dt)
-        wts[i] = conf * np.float32(dt)
+        dt = np.float32(centres[b] - centres[a])
+        flow = _flow_pair(frames[a], frames[b], method)
+        if i > 0:
+            predicted = np.dstack([cv2.medianBlur(votes[i - 1][..., c], 5) for c in (0, 1)])
+            guided = _flow_pair(frames[a], frames[b], method, init=predicted * dt)
+            better = warp_residual(frames[a], frames[b], guided) < warp_residual(
+                frames[a], frames[b], flow
+            )
+            flow[better] = guided[better]
+        votes[i] = flow / dt
+        wts[i] = conf * dt
     first = votes[: nb - 1]
     dts = (centres[1:] - centres[0]).reshape(-1, 1, 1, 1)
     vel = (first * dts**2).sum(axis=0) / float(np.sum(dts**2))
@@ -447,6 +464,24 @@ def _refine_boundaries(
     return out
 
 
+def _merge_alike(label: np.ndarray, cands: list[np.ndarray]) -> tuple[np.ndarray, list]:
+    """Moving layers whose velocities differ by less than :data:`SAME_LAYER_PX_S` join the
+    one of them with the most points; returns the relabelled map and the velocities."""
+    sizes = np.bincount(label.ravel(), minlength=len(cands))
+    into = np.arange(len(cands))
+    kept: list[int] = []
+    for k in sorted(range(1, len(cands)), key=lambda k: -sizes[k]):
+        alike = [j for j in kept if np.hypot(*(cands[k] - cands[j])) < SAME_LAYER_PX_S]
+        if alike:
+            into[k] = alike[0]
+        else:
+            kept.append(k)
+    keep = [0] + sorted(kept)
+    number = np.zeros(len(cands), np.int32)
+    number[keep] = np.arange(len(keep))
+    return number[into[label]], [cands[k] for k in keep]
+
+
 def _kept_layers(label: np.ndarray, vels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The labels renumbered over the layers some pixel keeps, and those layers' velocities."""
     used = np.unique(label)
@@ -478,7 +513,9 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
         )
         wgt = (conf * (near & sel)).astype(np.float64)
         v = _refine(lv, slv, m, centres, wgt)
-        if np.hypot(*v) >= MIN_SPEED_PX_S and all(np.hypot(*(v - c)) > 1.0 for c in cands):
+        if np.hypot(*v) >= MIN_SPEED_PX_S and all(
+            np.hypot(*(v - c)) > SAME_LAYER_PX_S for c in cands[1:]
+        ):
             cands.append(v)
     label = np.zeros((hw, ww), np.int32)
     if len(cands) > 1:
@@ -489,18 +526,24 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
         cands = [cands[k] for k in keep]
         label = remap[label]
         # Second pass: refine each moving layer's velocity on the interior of its
-        # points (better voters than the flow's), and assign again.
-        for k in range(1, len(cands)):
-            inner = cv2.erode((label == k).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
-            if inner.sum() >= 50:
-                cands[k] = _refine(
-                    lv,
-                    slv,
-                    cands[k],
-                    centres,
-                    (conf_raw * inner).astype(np.float64),
-                    steps=(0.25, 0.125, 0.0625),
-                )
+        # points (better voters than the flow's); layers that then move alike are one
+        # (refined again on their union); assign again.
+        for _ in range(len(cands)):
+            for k in range(1, len(cands)):
+                inner = cv2.erode((label == k).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+                if inner.sum() >= 50:
+                    cands[k] = _refine(
+                        lv,
+                        slv,
+                        cands[k],
+                        centres,
+                        (conf_raw * inner).astype(np.float64),
+                        steps=(0.25, 0.125, 0.0625),
+                    )
+            n_before = len(cands)
+            label, cands = _merge_alike(label, cands)
+            if len(cands) == n_before:
+                break
         if len(cands) > 1:  # (no point kept a moving layer: the scene is still)
             label = _assign(lv, slv, cands, centres)
     # Back to the full grid: nearest-neighbour labels, velocities rescaled.
