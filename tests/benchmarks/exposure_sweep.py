@@ -15,8 +15,9 @@ It prints, per run, the all-pixel RMS error in stops of each method and the dark
 RMS of hdr-static and adaptive attenuation; then, per N, on how many runs long and short
 are each worse than hdr-static; and, with several seeds, on how many seeds hdr-static's
 dark RMS is below adaptive attenuation's (in the dark both expose the whole frame through
-an open LCoS unless adaptive attenuation mis-attenuates a pixel, so elsewhere only the
-noise draw separates them).
+an open LCoS unless adaptive attenuation mis-attenuates a pixel; `simulate` exposes both
+with the same noise, so elsewhere they record the same values, and only the
+mis-attenuated pixels separate them).
 
 Run: python -m tests.benchmarks.exposure_sweep OUT_DIR [--reach 1,2,4,8,16]
 [--seeds 0] [--size-scale F] [SCENE ...] (`make evaluate-exposure` runs it twice, into
