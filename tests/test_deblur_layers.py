@@ -77,6 +77,22 @@ def test_motion_layers_reading():
     assert motion_layers(dense) is None
 
 
+def test_layers_that_move_alike_merge_into_the_larger():
+    from stages.deblur.layers import _merge_alike
+
+    label = np.zeros((10, 10), np.int32)
+    label[:, 6:] = 1  # 40 points at (40, 10)
+    label[:2, :6] = 2  # 12 points at (38, 8): within 4 px/s of layer 1
+    label[9, :3] = 3  # 3 points at (10, 0): a layer of its own
+    cands = [np.zeros(2), np.array([40.0, 10.0]), np.array([38.0, 8.0]), np.array([10.0, 0.0])]
+    merged, vels = _merge_alike(label, cands)
+    assert [v.tolist() for v in vels] == [[0, 0], [40, 10], [10, 0]]
+    assert np.all(merged[:, 6:] == 1) and np.all(merged[:2, :6] == 1)
+    assert np.all(merged[9, :3] == 2) and np.all(merged[2:9, :6] == 0)
+    still, vels = _merge_alike(np.zeros((4, 4), np.int32), [np.zeros(2)])
+    assert len(vels) == 1 and not still.any()
+
+
 def test_still_rows_free_nothing():
     T = np.full((20, 24), 0.99975, np.float32)
     A = blur_matrix(np.zeros((20, 24, 2), np.float32), vet_windows(T, 0.99975, 0.00758, 131, 0.002))

@@ -12,15 +12,20 @@ two numbers, so it is far more accurate where the model holds. The estimate:
    flow is a displacement ``u (c_b - c_0)`` (``c_b`` the bin centres), so a per-pixel
    velocity is the least-squares fit of displacement against time over all pairs (long
    baselines dominate, as they should: their displacement is least affected by the flow's
-   fixed error). A pixel's confidence is its signal-to-noise ratio times texture times
-   the agreement of the pairs.
+   fixed error). Each long-baseline flow is also started from the displacement the
+   shorter baseline before it predicts, and each pixel keeps whichever flow better
+   explains the pair (a displacement of a sizeable share of the frame is beyond the
+   flow's pyramid on its own). A pixel's confidence is its signal-to-noise ratio times
+   texture times the agreement of the pairs.
 2. **Modes.** The confident velocities vote in a 2-D histogram (0.5 px/s cells); its
    peaks are the candidate layer velocities (a peak must hold a minimum share of the
    confident pixels); zero velocity is always a candidate.
 3. **Refinement.** Each candidate's velocity is refined to sub-pixel-per-second
    precision by maximising the agreement of the motion-compensated bins (every bin
    sampled at ``y + v c_b`` should show the same scene point ``y``) over the pixels that
-   voted for it, weighted by their signal-to-noise ratio (coarse-to-fine grid search).
+   voted for it, weighted by their signal-to-noise ratio (coarse-to-fine grid search);
+   after the first assignment, again over each layer's interior. Moving layers then
+   closer than :data:`SAME_LAYER_PX_S` are one layer.
 4. **Assignment.** Each scene point at t = 0 takes the moving layer with the most
    evidence that the pixels along its path show it (:func:`_track_score`, a likelihood
    ratio against stillness pooled over a small neighbourhood); points without clear
@@ -289,8 +294,8 @@ def dense_long_baseline(lv: np.ndarray, slv: np.ndarray, centres: np.ndarray, me
     from the displacement its predecessor's velocity predicts for its baseline (a moving
     object's long-baseline displacement can be far beyond what the flow's pyramid finds
     on its own: 30 px on a 128 px image); each pixel keeps the flow that better explains
-    the pair (:func:`stages.flow.warp_residual`). Returns ``votes`` (P, H, W, 2) px/s with weights
-    ``(P, H, W)`` (confidence times baseline), the per-pixel fit of the flows from the
+    the pair (:func:`stages.flow.warp_residual`). Returns ``votes`` (P, H, W, 2) px/s with
+    weights ``(P, H, W)`` (confidence times baseline), the per-pixel fit of the flows from the
     first bin (H, W, 2), and the per-pixel confidence (H, W).
     """
     import cv2

@@ -1,5 +1,6 @@
-"""Issue 2 benchmarks: simulate, hdr-static against an oiiotool copy, `vet --help`, and
-the static round trip at full resolution on the shared scenes (when present).
+"""Issue 2 benchmarks: simulate, hdr-static against an oiiotool copy, `vet --help`, the
+shared-noise Poisson sampler against scipy's, and the static round trip at full
+resolution on the shared scenes (when present).
 
 Run: python -m tests.benchmarks.bench_foundation
 """
@@ -116,9 +117,38 @@ def round_trip_table() -> None:
     )
 
 
+def bench_poisson_quantile() -> None:
+    """``stages.physics.poisson_quantile`` (the exact Poisson draws of the noise that
+    simulate's methods share) against ``scipy.stats.poisson.ppf``: a megapixel of means
+    below the normal-approximation threshold, best of three."""
+    import numpy as np
+    from scipy import stats
+
+    from stages.physics import POISSON_EXACT_BELOW, poisson_quantile
+
+    rng = np.random.default_rng(0)
+    lam = rng.uniform(0, POISSON_EXACT_BELOW, 1280 * 1024)
+    u = rng.uniform(0, 1, lam.shape)
+    times = {}
+    for name, fn in (("poisson_quantile", poisson_quantile), ("scipy ppf", stats.poisson.ppf)):
+        best = float("inf")
+        for _ in range(3):
+            t0 = time.perf_counter()
+            k = fn(u, lam)
+            best = min(best, time.perf_counter() - t0)
+        times[name] = (best, k)
+    same = bool(np.array_equal(times["poisson_quantile"][1], times["scipy ppf"][1]))
+    print(
+        f"Poisson quantile, 1280x1024 means in [0, {POISSON_EXACT_BELOW:g}): "
+        f"poisson_quantile {times['poisson_quantile'][0]:.2f} s, "
+        f"scipy.stats.poisson.ppf {times['scipy ppf'][0]:.2f} s, identical: {same}"
+    )
+
+
 def main() -> None:
     bench_help()
     bench_simulate_and_hdr_static()
+    bench_poisson_quantile()
     round_trip_table()
 
 
