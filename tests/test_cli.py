@@ -130,6 +130,71 @@ def test_runtime_errors_in_arguments_exit_1(tmp_path):
     assert not (tmp_path / "c.exr").exists()
 
 
+# --- bad output names: refused before any work, exit 1, one line ---------------------
+
+#: The function each command's work starts with; a bad output must stop it earlier.
+WORK = {
+    "simulate": "stages.simulate.simulate",
+    "evaluate": "stages.evaluate.run_evaluation",
+    "calibrate": "stages.calibrate.run_calibration",
+    "capture": "stages.devices.rigs.open_rig",
+}
+
+BAD_OUTPUTS = {
+    "deblur, image extension": (["deblur", "{cap}", "-o", "{d}/o.png"], "unsupported output"),
+    "deblur, missing folder": (["deblur", "{cap}", "-o", "{d}/no/o.exr"], "does not exist"),
+    "deblur, name is a folder": (["deblur", "{cap}", "-o", "{d}/dir.exr"], "is a folder"),
+    "deblur, motion in missing folder": (
+        ["deblur", "{cap}", "-o", "{d}/o.exr", "--motion-out", "{d}/no/m.exr"],
+        "does not exist",
+    ),
+    "deblur, motion picture as EXR": (
+        ["deblur", "{cap}", "-o", "{d}/o.exr", "--motion-picture", "{d}/m.exr"],
+        "unsupported image extension",
+    ),
+    "hdr-static, missing folder": (["hdr-static", "{cap}", "-o", "{d}/no/o.exr"], "does not exist"),
+    "tonemap, data extension": (["tonemap", "{cap}", "-o", "{d}/o.exr"], "unsupported image"),
+    "simulate, no extension": (
+        ["simulate", "builtin:chart", "-o", "{d}/cap"],
+        "unsupported output",
+    ),
+    "calibrate, missing folder": (
+        ["calibrate", "--rig", "sim", "-o", "{d}/no/cal.exr"],
+        "does not exist",
+    ),
+    "evaluate, a file in the way": (
+        ["evaluate", "builtin:chart", "-o", "{d}/file/report"],
+        "is a file, not a folder",
+    ),
+    "capture, a file in the way": (["capture", "--rig", "sim", "-o", "{d}/file"], "is a file"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_OUTPUTS))
+def test_bad_output_is_refused_before_any_work(tmp_path, monkeypatch, case):
+    import importlib
+
+    argv, expect = BAD_OUTPUTS[case]
+    (tmp_path / "dir.exr").mkdir()
+    (tmp_path / "file").write_text("not a folder")
+
+    def started(*args, **kwargs):
+        raise AssertionError("the command's work started")
+
+    command = argv[0]
+    if command in WORK:
+        module, name = WORK[command].rsplit(".", 1)
+        monkeypatch.setattr(importlib.import_module(module), name, started)
+    # The capture does not exist: reading it first would fail on the input instead.
+    args = [a.format(d=tmp_path, cap=tmp_path / "missing.exr") for a in argv]
+    res = invoke(*args)
+    err = stderr_of(res).strip()
+    assert res.exit_code == 1, err
+    assert len(err.splitlines()) == 1 and err.startswith(f"vet {command}: error: "), err
+    assert expect in err and "no such file" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.exr", "file"]
+
+
 def test_simulate_help_names_the_builtin_scenes():
     res = invoke("simulate", "--help")
     assert res.exit_code == 0

@@ -81,6 +81,9 @@ def cli(
 
     if rig_spec is None and frames_dir is None:
         raise click.UsageError("give --rig sim|RIG.toml or --frames FOLDER")
+    from stages.formats.io import check_output
+
+    check_output(output)
     progress = Progress("calibrate")
     cal = c.run_calibration(
         rig_spec,

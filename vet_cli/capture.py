@@ -83,8 +83,10 @@ def cli(
 ) -> None:
     from stages.capture import capture_frame
     from stages.devices.rigs import SimOptions, open_rig
+    from stages.formats.io import check_output
     from stages.scenes import parse_size
 
+    check_output(output, "folder")  # before the rig is opened
     overrides = rig_overrides(kwargs)
     cal = None
     if calibration:

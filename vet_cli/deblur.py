@@ -73,7 +73,11 @@ def cli(
     from stages.flow import write_motion
     from stages.formats import read_capture, write_hdr
     from stages.formats.images import write_display_image
+    from stages.formats.io import check_output
 
+    check_output(output)
+    check_output(motion_out)
+    check_output(motion_picture, "display")
     cap = read_capture(capture)
     progress = Progress(f"deblur {method}")
     img, vel = deblur(cap, method=method, motion_init=motion_init, progress=progress)

@@ -60,8 +60,10 @@ def cli(
     scene: str, output: str, motion: str, size: str | None, seed: int, methods: tuple, **kwargs
 ) -> None:
     from stages.evaluate import results_markdown, run_evaluation, write_report
+    from stages.formats.io import check_output
     from stages.scenes import parse_size
 
+    check_output(output, "folder")
     scale, reach = scale_choice(kwargs)
     ev = run_evaluation(
         scene,

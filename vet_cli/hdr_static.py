@@ -33,8 +33,10 @@ def cli(capture: str, output: str) -> None:
     import numpy as np
 
     from stages.formats import read_capture, write_hdr
+    from stages.formats.io import check_output
     from stages.hdr_static import hdr_static
 
+    check_output(output)
     cap = read_capture(capture)
     img = hdr_static(cap)
     counts = np.bincount(img.mask.ravel(), minlength=4)

@@ -65,11 +65,13 @@ def cli(
     **kwargs,
 ) -> None:
     from stages.formats import write_capture
+    from stages.formats.io import check_output
     from stages.motion import parse_motion
     from stages.rig import RigParams
     from stages.scenes import load_scene, parse_size
     from stages.simulate import simulate
 
+    check_output(output)
     scale, reach = scale_choice(kwargs)
     overrides = rig_overrides(kwargs)
     mot = parse_motion(motion)

@@ -56,11 +56,12 @@ def cli(
     what: str | None,
 ) -> None:
     from stages.errors import FormatError, InputError
-    from stages.formats.images import display_format, write_display_image
+    from stages.formats.images import write_display_image
+    from stages.formats.io import check_output
     from stages.formats.layered import read_layered
     from stages.rig import RigParams
 
-    display_format(output)  # refuse a bad extension before any work
+    check_output(output, "display")  # refuse a bad name before any work
     name = "standard input" if input == "-" else input
     data = read_layered(input)
     kind = data.meta.get("kind")

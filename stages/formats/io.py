@@ -96,6 +96,46 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
             os.unlink(tmp)
 
 
+def _output_folder(target: Path) -> Path:
+    """The existing folder an output file goes into (InputError if there is none)."""
+    folder = target.parent if str(target.parent) else Path(".")
+    if not folder.is_dir():
+        raise InputError(f"{target}: output folder {folder} does not exist")
+    if target.is_dir():
+        raise InputError(f"{target}: is a folder, not a file name")
+    return folder
+
+
+def check_output(path: str | Path | None, kind: str = "data") -> None:
+    """Refuse an output name up front, before a command does its work.
+
+    The writers would refuse it too, but only at the end: a deblur would run for a
+    minute to fail on a typo in ``-o``. ``kind``: ``"data"`` (.exr or .npz),
+    ``"display"`` (.png, .jpg, .tif) or ``"folder"`` (a report folder that the
+    command creates: it may be missing, but no file may stand in its way). ``None``
+    (an output not asked for) and ``-`` (standard output) pass.
+    """
+    if path is None or str(path) == "-":
+        return
+    target = Path(path)
+    if kind == "folder":
+        for p in (target, *target.parents):
+            if p.exists():
+                if not p.is_dir():
+                    raise InputError(f"{target}: {p} is a file, not a folder")
+                return
+        return
+    if kind == "data":
+        format_for_output(str(target))
+    elif kind == "display":
+        from .images import display_format  # images writes through this module
+
+        display_format(target)
+    else:
+        raise ValueError(f"unknown output kind {kind!r}")
+    _output_folder(target)
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path to write; on success it replaces ``path`` atomically.
@@ -109,9 +149,7 @@ def atomic_output(path: str | Path, suffix: str | None = None) -> Iterator[Path]
         suffix = suffix or ""
     else:
         target = Path(path)
-        folder = target.parent if str(target.parent) else Path(".")
-        if not folder.is_dir():
-            raise InputError(f"{target}: output folder {folder} does not exist")
+        folder = _output_folder(target)
         suffix = suffix if suffix is not None else target.suffix
     fd, tmp = tempfile.mkstemp(prefix=".vet-tmp-", suffix=suffix, dir=folder)
     os.close(fd)
