@@ -8,7 +8,7 @@ Two methods share the forward model of :mod:`stages.deblur.operator`:
     (Poisson-Gaussian) misfit on the VET image and the measuring bins, conjugate-gradient
     image solves with iteratively reweighted robust weights, an edge-preserving relative
     prior; only pixels whose integration path moves are re-estimated, the rest keep
-    hdr-static (their maximum-likelihood value).
+    hdr-static (the maximum-likelihood value of their VET data).
 ``paper`` (:mod:`stages.deblur.paper`)
     The published method of Uda et al. (2016): least-squares misfit on I, Laplacian
     smoothness on the image and on both motion components, a histogram-intersection prior

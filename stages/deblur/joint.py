@@ -35,15 +35,18 @@ block, an eighth of the work per iteration), and hdr-static times the prolonged
 the error against the fine iterations).
 
 Only the pixels that a moving integration path touches are re-estimated
-(:func:`moving_support`): a pixel whose path does not move sees only its own point of
-the scene, and for such data alone the noise-weighted maximum-likelihood solution of
-the static model is hdr-static's, which they keep. The measuring bins and the prior act
-only where the blur has to be undone. So a still scene (or a still background) comes
-out exactly as hdr-static: not a special case, the solution of the problem restricted
-to the unknowns the data's motion involves. Pixels the VET sensor saturated carry no
-weight in the VET term (clipped data) and are estimated from the measuring bins and the
-paths crossing them; only those clipped in the first bin too, for which hdr-static has
-no more than a lower bound, are anchored to it.
+(:func:`moving_support`). A pixel whose paths do not move sees only its own point of
+the scene and keeps hdr-static, the noise-weighted maximum-likelihood value of its VET
+data (I and T). The measuring images saw it too, for the whole frame; fusing them in
+would lower its noise (most for bright pixels that closed early, less for dark ones,
+whose measuring sum carries the read noise of every subframe), but would also move
+every still pixel by about its own noise. Deblur undoes blur and leaves what did not
+move as hdr-static, so a still scene (or a still background) comes out exactly as
+hdr-static; the measuring bins and the prior act only where the blur has to be undone.
+Pixels the VET sensor saturated carry no weight in the VET term (clipped data) and are
+estimated from the measuring bins and the paths crossing them; only those clipped in
+the first bin too, for which hdr-static has no more than a lower bound, are anchored
+to it.
 """
 
 from __future__ import annotations
@@ -312,10 +315,11 @@ def motion_step(
 def moving_support(A: sp.csr_matrix, Ab: StackedOperator | None = None) -> np.ndarray:
     """Pixels of ``L0`` that some moving integration path samples, bool (H W,).
 
-    A row of the operator whose path does not move sees only its own pixel; the data of
-    such a pixel, alone, are the static model, whose noise-weighted maximum-likelihood
-    solution is hdr-static's. Only the pixels that a moving path touches (the columns of
-    the other rows) are re-estimated.
+    A row of the operator whose path does not move sees only its own pixel: the static
+    model, for which the pixel keeps hdr-static (the maximum-likelihood value of its VET
+    data; see the module docstring for why the measuring images are not fused there).
+    Only the pixels that a moving path touches (the columns of the other rows) are
+    re-estimated.
     """
     n = A.shape[1]
     free = np.zeros(n, bool)
