@@ -8,7 +8,9 @@ and published methods, and the default method with the true motion as an oracle)
 scored against the true scene at t = 0 with :func:`stages.metrics.stops_error`, split by
 the VET capture's exposure time: ``dark`` pixels were exposed the whole frame, ``bright``
 ones closed early. The same split is used for every method so that rows compare like
-with like.
+with like. Pixels are scored down to the level the rig can measure at all
+(:func:`stages.metrics.measurable_floor`: a whole-frame exposure gathers as much signal
+as noise), however dark; only those below it are left out.
 
 Outputs (written atomically into the report folder): ``results.csv``, ``results.md``,
 ``errors.png`` (bar chart), ``contact_sheet.png`` (all methods and the truth, tone-mapped
@@ -66,6 +68,8 @@ class Evaluation:
     radiance_scale: float = float("nan")
     reach_subframes: float | None = 1.0  # None: the radiance scale was given
     rig_changes: dict[str, Any] = field(default_factory=dict)
+    floor: float = 0.0  # truth level (scene units) at or below which pixels are not scored
+    floor_e: float = 0.0  # the same, as electrons of a whole-frame VET exposure
 
 
 def run_evaluation(
@@ -88,7 +92,7 @@ def run_evaluation(
     """
     from .deblur import deblur
     from .hdr_static import hdr_static
-    from .metrics import stops_error
+    from .metrics import measurable_floor, stops_error
     from .motion import parse_motion
     from .rig import RigParams
     from .scenes import load_scene
@@ -131,6 +135,8 @@ def run_evaluation(
         reach_subframes=float(reach_subframes) if scale is None else None,
         rig_changes=changes,
     )
+    ev.floor = measurable_floor(rig, ev.radiance_scale)
+    ev.floor_e = ev.floor * ev.radiance_scale * rig.frame_s
     ev.runtime_s["simulate"] = sim_s
     plan: dict[str, Callable[[], Any]] = {
         "vet-static": lambda: (hdr_static(vet), None),
@@ -149,7 +155,7 @@ def run_evaluation(
         if name == "vet-deblur":
             ev.velocity = vel
         ev.images[name] = img.radiance
-        ev.scores[name] = stops_error(img.radiance, vet.truth, vet.T, rig.frame_s)
+        ev.scores[name] = stops_error(img.radiance, vet.truth, vet.T, rig.frame_s, floor=ev.floor)
         log.debug(
             "evaluate: %s dark rms %.3f (%.1f s)",
             name,
@@ -206,7 +212,10 @@ def results_markdown(ev: Evaluation) -> str:
     lines += [
         "",
         f"Pixels scored: all {rows[0]['n_all']}, dark {rows[0]['n_dark']}, "
-        f"bright {rows[0]['n_bright']}. Simulation took {ev.runtime_s.get('simulate', 0):.1f} s.",
+        f"bright {rows[0]['n_bright']} (8 px from the border excluded, and pixels whose truth is "
+        f"at or below {ev.floor:.4g} scene units, where a whole-frame exposure gathers "
+        f"{ev.floor_e:.1f} e-, no more signal than noise). "
+        f"Simulation took {ev.runtime_s.get('simulate', 0):.1f} s.",
     ]
     empty = [reg for reg in REGIONS if rows[0][f"n_{reg}"] == 0]
     if empty:

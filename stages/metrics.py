@@ -2,11 +2,30 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .scenes import luminance
+
+if TYPE_CHECKING:
+    from .rig import RigParams
+
+
+def measurable_floor(rig: RigParams, radiance_scale: float) -> float:
+    """Scene level below which a rig cannot measure a pixel at all (truth units).
+
+    The level at which a whole-frame exposure of the VET sensor (the longest any method
+    gets) gathers as many signal electrons ``S`` as its own noise:
+    ``S = sqrt(S + read_noise^2 + dark_current * frame)``; 6.4 e- with DESIGN.md's
+    defaults. Below it every method reads noise, so the error in stops measures nothing
+    but the noise; above it the pixels are scored, however dark.
+
+    ``radiance_scale``: electrons per second at the VET sensor per scene unit.
+    """
+    var0 = rig.read_noise_e**2 + rig.dark_current_e_s * rig.frame_s
+    s_min = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * var0))
+    return float(s_min / (radiance_scale * rig.frame_s))
 
 
 def stops_error(
@@ -16,6 +35,7 @@ def stops_error(
     frame_s: float | None = None,
     border: int = 8,
     floor_frac: float = 1e-4,
+    floor: float | None = None,
 ) -> dict[str, Any]:
     """Error |log2(estimate / truth)| on luminance, over valid pixels, with statistics.
 
@@ -31,8 +51,12 @@ def stops_error(
     border : int
         Pixels excluded at each image edge.
     floor_frac : float
-        Pixels whose true luminance is below ``floor_frac`` x the 99.9th percentile are
-        excluded (they are dominated by noise by design).
+        Without ``floor``: pixels whose true luminance is below ``floor_frac`` x the
+        99.9th percentile are excluded (a scale-free guard against black pixels).
+    floor : float, optional
+        Absolute floor on the true luminance (truth units); pixels at or below it are
+        excluded. :func:`measurable_floor` gives the one of a rig: where even a
+        whole-frame exposure gathers less signal than noise.
 
     Returns
     -------
@@ -46,7 +70,8 @@ def stops_error(
     h, w = lt.shape
     region = np.zeros((h, w), bool)
     region[border : h - border, border : w - border] = True
-    floor = floor_frac * float(np.percentile(lt, 99.9))
+    if floor is None:
+        floor = floor_frac * float(np.percentile(lt, 99.9))
     region &= lt > floor
     nonfinite = int((~np.isfinite(le) & region).sum())
     valid = region & np.isfinite(le) & (le > 0)

@@ -81,6 +81,38 @@ def test_evaluate_runs_a_subset_on_a_dimmer_scene_and_says_so(tmp_path):
     assert rms[8] > 1.5 * rms[1]
 
 
+def test_measurable_floor_is_where_signal_equals_noise():
+    from stages.metrics import measurable_floor
+    from stages.rig import RigParams
+
+    rig = RigParams()
+    scale = 670.0
+    floor = measurable_floor(rig, scale)
+    s = floor * scale * rig.frame_s  # electrons of a whole-frame exposure
+    noise = np.sqrt(s + rig.read_noise_e**2 + rig.dark_current_e_s * rig.frame_s)
+    assert s == pytest.approx(noise, rel=1e-12)
+    assert s == pytest.approx(6.44, abs=0.01)  # DESIGN.md's read noise and dark current
+    assert measurable_floor(rig, 2 * scale) == pytest.approx(floor / 2)
+
+
+def test_evaluate_scores_every_pixel_the_rig_can_measure():
+    """The interior's wall is 13+ stops below its lamp: a floor relative to the scene's
+    brightest pixels left most of it out; the rig's measurable floor keeps it."""
+    from stages.evaluate import results_markdown, run_evaluation
+    from stages.metrics import measurable_floor
+    from stages.rig import RigParams
+    from stages.scenes import luminance
+
+    ev = run_evaluation("builtin:interior", "translate:30,0", (96, 80), rows=("vet-static",))
+    lt = luminance(ev.truth)[8:-8, 8:-8]
+    rig = RigParams(sensor_size=(96, 80))
+    assert ev.floor == pytest.approx(measurable_floor(rig, ev.radiance_scale))
+    scored = ev.scores["vet-static"]["all"]["n"]
+    assert scored == int((lt > ev.floor).sum())
+    assert scored > 1.5 * int((lt > 1e-4 * np.percentile(luminance(ev.truth), 99.9)).sum())
+    assert f"{ev.floor_e:.1f} e-" in results_markdown(ev)
+
+
 def test_evaluate_with_a_given_radiance_scale_reports_it(tmp_path):
     out = tmp_path / "r"
     args = ["evaluate", "builtin:chart", "--size", "64x48", "--methods", "long"]

@@ -21,7 +21,7 @@ def main(size: str = "1280x1024") -> dict:
     from stages.deblur import deblur
     from stages.deblur.joint import JointOptions
     from stages.hdr_static import hdr_static
-    from stages.metrics import stops_error
+    from stages.metrics import measurable_floor, stops_error
     from stages.motion import parse_motion
     from stages.rig import RigParams
     from stages.scenes import Scene, builtin_interior, luminance, parse_size
@@ -35,11 +35,16 @@ def main(size: str = "1280x1024") -> dict:
     cap = simulate(mono, parse_motion("translate:30,0"), rig, seed=0, methods=["vet"])["vet"]
     print(f"simulate {w}x{h} mono: {time.perf_counter() - t0:.1f} s", flush=True)
     scale = cap.radiance_scale
+    floor = measurable_floor(rig, scale)  # as vet evaluate scores
 
     def dark_rms(img_rate: np.ndarray) -> float:
-        return stops_error(img_rate / scale, cap.truth, cap.T, rig.frame_s)["dark"]["rms"]
+        return stops_error(img_rate / scale, cap.truth, cap.T, rig.frame_s, floor=floor)["dark"][
+            "rms"
+        ]
 
-    static = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, rig.frame_s)["dark"]["rms"]
+    static = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, rig.frame_s, floor=floor)[
+        "dark"
+    ]["rms"]
     print(f"hdr-static dark RMS {static:.3f} stops", flush=True)
     out = {"size": size, "static_dark_rms": static}
     for method in ("vet", "paper"):
@@ -47,7 +52,7 @@ def main(size: str = "1280x1024") -> dict:
         t0 = time.perf_counter()
         img, _ = deblur(cap, method, options=opts, truth_cb=dark_rms if method == "vet" else None)
         dt = time.perf_counter() - t0
-        err = stops_error(img.radiance, cap.truth, cap.T, rig.frame_s)["dark"]["rms"]
+        err = stops_error(img.radiance, cap.truth, cap.T, rig.frame_s, floor=floor)["dark"]["rms"]
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
         print(
             f"{method}: {dt:.1f} s, dark RMS {err:.3f} stops, peak RSS so far {peak:.2f} GB",
