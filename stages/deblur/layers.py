@@ -36,6 +36,13 @@ two numbers, so it is far more accurate where the model holds. The estimate:
    layer most points clearly follow: a global motion); the label map is then cleaned
    with a median filter. A layer slower than :data:`MIN_SPEED_PX_S` is still; one
    that keeps under 1% of the points is merged into the largest.
+   Limitation: the evidence is in the measuring bins only. Where a bin's read noise
+   swamps the texture (``builtin:interior``'s dark wall gathers a few electrons per
+   pixel and bin against about 20 e- of read noise), no scale makes it clear, and the
+   moving points there stay with the default (still) layer: 63% of the points of the
+   object ``80,64,160,128`` on a 320x256 interior (``make bench``, bench_layers).
+   Lower thresholds (tried: a control velocity's evidence subtracted, four standard
+   errors of the pooled mean) found them but also labelled still floor as moving.
 5. **Boundaries at full resolution.** Where the working grid is coarser than the
    capture, the labels within :data:`BOUNDARY_BAND_PX` of a layer boundary are decided
    again from the full-resolution bins (:func:`_refine_boundaries`): on the moving
