@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from .formats.io import atomic_output
+from .metrics import BORDER_PX
 
 log = logging.getLogger(__name__)
 
@@ -212,7 +213,7 @@ def results_markdown(ev: Evaluation) -> str:
     lines += [
         "",
         f"Pixels scored: all {rows[0]['n_all']}, dark {rows[0]['n_dark']}, "
-        f"bright {rows[0]['n_bright']} (8 px from the border excluded, and pixels whose truth is "
+        f"bright {rows[0]['n_bright']} ({BORDER_PX} px from the border excluded, and pixels whose truth is "
         f"at or below {ev.floor:.4g} scene units, where a whole-frame exposure gathers "
         f"{ev.floor_e:.1f} e-, no more signal than noise). "
         f"Simulation took {ev.runtime_s.get('simulate', 0):.1f} s.",

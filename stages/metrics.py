@@ -11,6 +11,9 @@ from .scenes import luminance
 if TYPE_CHECKING:
     from .rig import RigParams
 
+#: Pixels left out at each image edge (where a moving scene enters and leaves the frame).
+BORDER_PX = 8
+
 
 def measurable_floor(rig: RigParams, radiance_scale: float) -> float:
     """Scene level below which a rig cannot measure a pixel at all (truth units).
@@ -33,7 +36,7 @@ def stops_error(
     truth: np.ndarray,
     exposure_time: np.ndarray | None = None,
     frame_s: float | None = None,
-    border: int = 8,
+    border: int = BORDER_PX,
     floor_frac: float = 1e-4,
     floor: float | None = None,
 ) -> dict[str, Any]:
