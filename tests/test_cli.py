@@ -167,6 +167,7 @@ BAD_OUTPUTS = {
         "is a file, not a folder",
     ),
     "capture, a file in the way": (["capture", "--rig", "sim", "-o", "{d}/file"], "is a file"),
+    "capture, missing parent": (["capture", "--rig", "sim", "-o", "{d}/no/cap"], "does not exist"),
 }
 
 

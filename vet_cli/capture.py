@@ -86,7 +86,7 @@ def cli(
     from stages.formats.io import check_output
     from stages.scenes import parse_size
 
-    check_output(output, "folder")  # before the rig is opened
+    check_output(output, "folder", parents=False)  # as capture_frame, before the rig opens
     overrides = rig_overrides(kwargs)
     cal = None
     if calibration:

@@ -106,19 +106,22 @@ def _output_folder(target: Path) -> Path:
     return folder
 
 
-def check_output(path: str | Path | None, kind: str = "data") -> None:
+def check_output(path: str | Path | None, kind: str = "data", parents: bool = True) -> None:
     """Refuse an output name up front, before a command does its work.
 
     The writers would refuse it too, but only at the end: a deblur would run for a
     minute to fail on a typo in ``-o``. ``kind``: ``"data"`` (.exr or .npz),
     ``"display"`` (.png, .jpg, .tif) or ``"folder"`` (a report folder that the
-    command creates: it may be missing, but no file may stand in its way). ``None``
-    (an output not asked for) and ``-`` (standard output) pass.
+    command creates: it may be missing, but no file may stand in its way; with
+    ``parents=False`` the command creates only the folder itself, so its parent must
+    exist). ``None`` (an output not asked for) and ``-`` (standard output) pass.
     """
     if path is None or str(path) == "-":
         return
     target = Path(path)
     if kind == "folder":
+        if not parents and not target.parent.is_dir():
+            raise InputError(f"{target}: parent folder {target.parent} does not exist")
         for p in (target, *target.parents):
             if p.exists():
                 if not p.is_dir():
