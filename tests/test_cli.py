@@ -116,6 +116,8 @@ def test_usage_errors_exit_2():
     )
     assert both.exit_code == 2 and "not both" in both.output
     assert invoke("no-such-command").exit_code == 2
+    paper = invoke("deblur", "c.exr", "-o", "o.exr", "--method", "paper", "--fuse-still")
+    assert paper.exit_code == 2 and "--method vet only" in paper.output
 
 
 def test_runtime_errors_in_arguments_exit_1(tmp_path):
@@ -230,6 +232,24 @@ def test_simulate_then_hdr_static_files_and_info(tmp_path):
     assert info["metadata"]["kind"] == "hdr"
     assert [p["step"] for p in info["metadata"]["provenance"]] == ["simulate", "hdr-static"]
     assert info["size"] == {"width": 64, "height": 48}
+
+
+def test_deblur_fuse_still_is_recorded_in_the_file(tmp_path):
+    cap, plain, fused = tmp_path / "c.npz", tmp_path / "p.exr", tmp_path / "f.exr"
+    assert invoke("simulate", "builtin:interior", "--size", "64x48", "-o", cap).exit_code == 0
+    assert invoke("deblur", cap, "-o", plain).exit_code == 0
+    assert invoke("deblur", cap, "-o", fused, "--fuse-still").exit_code == 0
+    meta = {p: json.loads(invoke("info", p).output)["metadata"] for p in (plain, fused)}
+    assert meta[fused]["fuse_still"] is True and meta[fused]["provenance"][-1]["params"] == {
+        "method": "vet",
+        "motion_init": "layers",
+        "fuse_still": True,
+    }
+    assert "fuse_still" not in meta[plain]
+    from stages.formats import read_hdr
+
+    a, b = read_hdr(plain).radiance, read_hdr(fused).radiance
+    assert a.shape == b.shape and not np.array_equal(a, b)  # the still pixels moved
 
 
 def test_pipe_through_stdin_and_stdout(tmp_path):

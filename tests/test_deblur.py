@@ -104,6 +104,43 @@ def test_still_scene_data_only_solution_is_hdr_static():
     assert np.median(d) < 0.01
 
 
+def test_fuse_still_gives_the_noise_of_all_the_data_on_a_still_scene():
+    # A flat, still, dark scene (2000 e- over the frame: the measuring sum never reaches
+    # the threshold, so every pixel is exposed the whole frame). hdr-static has the VET
+    # sensor's noise; the maximum-likelihood value of the VET image and the measuring
+    # images together has the variance 1 / (1/var_vet + 1/var_measure), where the
+    # measuring sum carries the read noise of all 131 subframes. Known answer from the
+    # rig's parameters, not from the code.
+    from stages.scenes import Scene
+
+    w, h, signal = 96, 80, 2000.0
+    rig = RigParams(sensor_size=(w, h))
+    scene = Scene(np.ones((h, w, 1), np.float32), ["Y"], "flat")
+    cap = simulate(
+        scene, parse_motion("none"), rig, seed=3, methods=["vet"], scale=signal / rig.frame_s
+    )["vet"]
+    assert np.all(cap.T == cap.T.max())
+    static = hdr_static(cap).radiance[..., 0]
+    default, _ = deblur(cap, "vet")
+    assert np.array_equal(default.radiance[..., 0], static)  # keeps hdr-static exactly
+    fused_img, vel = deblur(cap, "vet", options=JointOptions(fuse_still=True))
+    assert np.all(vel == 0)
+    fused = fused_img.radiance[..., 0]
+    q = 1.0 / (12.0 * rig.gain_dn_per_e**2)
+    dark = rig.dark_current_e_s * rig.frame_s
+    var_vet = signal + dark + rig.read_noise_e**2 + q
+    var_meas = signal * rig.measure_fraction + dark + rig.n_subframes * (rig.read_noise_e**2 + q)
+    var_meas /= rig.measure_fraction**2  # in VET electrons
+    expected = np.sqrt(1.0 / (1.0 / var_vet + 1.0 / var_meas) / var_vet)  # 0.85
+    inner = (slice(4, -4), slice(4, -4))
+    ratio = float(np.std(fused[inner]) / np.std(static[inner]))
+    assert abs(ratio - expected) < 0.03, (ratio, expected)
+    assert abs(float(np.mean(fused[inner])) - 1.0) < 2e-3  # unbiased (truth is 1)
+    assert fused_img.meta["fuse_still"] is True
+    assert fused_img.meta["provenance"][-1]["params"]["fuse_still"] is True
+    assert "fuse_still" not in default.meta
+
+
 def test_deblur_with_true_motion_beats_hdr_static_in_the_dark():
     cap = _capture("translate:30,0", 128, 96)
     static = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, cap.rig.frame_s)

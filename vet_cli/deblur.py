@@ -15,8 +15,9 @@ Estimates the scene L0 and a per-pixel velocity u (px/s) jointly from the variab
 exposure image I, the exposure time image T and the measuring images. --method vet (the
 default) estimates a layered motion (still background and translating layers, with
 occlusion) from all the measuring images and solves a noise-weighted misfit on I and
-the measuring images with conjugate gradients, coarse to fine (2x2 blocks first), robust at occlusions; pixels whose
-integration path does not move keep hdr-static; --method paper
+the measuring images with conjugate gradients, coarse to fine (2x2 blocks first),
+robust at occlusions; pixels whose integration path does not move keep hdr-static
+(--fuse-still: the value all their data give); --method paper
 reproduces the published method (least squares on I, Laplacian and
 histogram-intersection priors, steepest descent). --motion-init truth uses the
 simulator's true motion: an oracle for research.
@@ -58,6 +59,14 @@ Example:
     metavar="MOTION.png",
     help="Also write a colour-wheel picture of the estimated motion.",
 )
+@click.option(
+    "--fuse-still",
+    is_flag=True,
+    help="Still pixels (no moving path touches them) take the maximum-likelihood value of "
+    "the VET image and the measuring images together instead of hdr-static's (the VET data "
+    "alone): less noise, but a still scene no longer comes out as hdr-static. "
+    "--method vet only.",
+)
 @verbosity_options
 @command("deblur")
 def cli(
@@ -67,6 +76,7 @@ def cli(
     motion_init: str | None,
     motion_out: str | None,
     motion_picture: str | None,
+    fuse_still: bool,
 ) -> None:
     from stages.deblur import deblur
     from stages.flow import motion_picture as picture
@@ -75,12 +85,21 @@ def cli(
     from stages.formats.images import write_display_image
     from stages.formats.io import check_output
 
+    if fuse_still and method != "vet":
+        raise click.UsageError("--fuse-still applies to --method vet only")
     check_output(output)
     check_output(motion_out)
     check_output(motion_picture, "display")
     cap = read_capture(capture)
     progress = Progress(f"deblur {method}")
-    img, vel = deblur(cap, method=method, motion_init=motion_init, progress=progress)
+    options = None
+    if fuse_still:
+        from stages.deblur.joint import JointOptions
+
+        options = JointOptions(fuse_still=True)
+    img, vel = deblur(
+        cap, method=method, motion_init=motion_init, progress=progress, options=options
+    )
     progress.finish()
     log.debug("deblur: %s in %.1f s", img.meta["method"], img.meta["runtime_s"])
     write_hdr(output, img)

@@ -177,6 +177,7 @@ def deblur(
             truth_cb=truth_cb,
         )
         name = "vet-deblur-paper"
+    extra = {"fuse_still": True} if getattr(opts, "fuse_still", False) else {}
     # Pixels hdr-static could only bound keep its value (the deblur has no data there).
     L = np.where(bound_only[..., None], np.maximum(L, L_init), L)
     radiance, units = rate_to_output_units(cap, L.astype(np.float32))
@@ -186,8 +187,9 @@ def deblur(
         motion_init=motion_init,
         runtime_s=round(time.perf_counter() - t_start, 3),
         provenance=list(cap.meta.get("provenance", []))
-        + [provenance_entry("deblur", method=method, motion_init=motion_init)],
+        + [provenance_entry("deblur", method=method, motion_init=motion_init, **extra)],
     )
+    meta.update(extra)
     meta["units"] = units
     return HDRImage(
         radiance=radiance.astype(np.float32),

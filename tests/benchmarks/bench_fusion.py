@@ -1,0 +1,115 @@
+"""Benchmark: still pixels as hdr-static (the default) or fused with the measuring images.
+
+The default deblur leaves every pixel that no moving path touches at hdr-static, the
+maximum-likelihood value of its VET data; ``vet deblur --fuse-still``
+(``JointOptions.fuse_still``) gives such pixels the maximum-likelihood value of the VET
+image and the measuring images together. This prints what that trades:
+
+1. a capture of a still scene (640x512 RGB ``builtin:interior``): the median change to
+   hdr-static (the issue's target for a still scene is under 0.01 stops) and the
+   dark-pixel RMS error of both;
+2. GoldenGate with the central quarter-area object, ``object:W/4,H/4,W/2,H/2:40,10``
+   (needs ../shared; the run on which the ranking default deblur < paper deblur fails,
+   because no dark pixel there moves): dark-pixel RMS error of hdr-static, the paper
+   method, the default deblur and the fused one.
+
+Errors are scored as ``vet evaluate`` scores them (stops, measurable floor, 8 px
+border). Run: ``.venv/bin/python -m tests.benchmarks.run fusion``.
+"""
+
+from __future__ import annotations
+
+import time
+
+
+def main() -> dict:
+    return {"still": still_scene(), "goldengate_object": goldengate_object()}
+
+
+def _dark_rms(cap):
+    """Dark-pixel RMS error in stops of an image of ``cap``'s scene, as evaluate scores."""
+    from stages.metrics import measurable_floor, stops_error
+
+    floor = measurable_floor(cap.rig, float(cap.radiance_scale))
+    return lambda radiance: stops_error(radiance, cap.truth, cap.T, cap.rig.frame_s, floor=floor)[
+        "dark"
+    ]["rms"]
+
+
+def still_scene(size: str = "640x512") -> dict:
+    import numpy as np
+
+    from stages.deblur import deblur
+    from stages.deblur.joint import JointOptions
+    from stages.hdr_static import hdr_static
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import builtin_interior, parse_size
+    from stages.simulate import simulate
+
+    w, h = parse_size(size)
+    rig = RigParams(sensor_size=(w, h))
+    cap = simulate(builtin_interior(w, h), parse_motion("none"), rig, seed=0, methods=["vet"])[
+        "vet"
+    ]
+    dark_rms = _dark_rms(cap)
+    static = hdr_static(cap).radiance
+    out = {"static_dark_rms": dark_rms(static)}
+    print(
+        f"still scene {size} RGB ({float(np.mean(cap.T == cap.T.max())):.1%} of pixels exposed"
+        f" the whole frame): hdr-static dark RMS {out['static_dark_rms']:.4f} stops",
+        flush=True,
+    )
+    for name, fuse in (("default", False), ("--fuse-still", True)):
+        img, _ = deblur(cap, "vet", options=JointOptions(fuse_still=fuse))
+        change = float(np.median(np.abs(np.log2(img.radiance / static))))
+        out[name] = {"median_change": change, "dark_rms": dark_rms(img.radiance)}
+        print(
+            f"  deblur {name}: median change to hdr-static {change:.4f} stops (target < 0.01),"
+            f" dark RMS {out[name]['dark_rms']:.4f} stops",
+            flush=True,
+        )
+    return out
+
+
+def goldengate_object() -> dict | None:
+    from stages.deblur import deblur
+    from stages.deblur.joint import JointOptions
+    from stages.hdr_static import hdr_static
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+    from tests.benchmarks.common import SHARED_HDR
+
+    path = SHARED_HDR / "GoldenGate.exr"
+    if not path.exists():
+        print(f"GoldenGate object: skipped ({path} not present)", flush=True)
+        return None
+    scene = load_scene(str(path), None)
+    h, w = scene.radiance.shape[:2]
+    spec = f"object:{w // 4},{h // 4},{w // 2},{h // 2}:40,10"
+    rig = RigParams(sensor_size=(w, h))
+    cap = simulate(scene, parse_motion(spec), rig, seed=0, methods=["vet"])["vet"]
+    dark_rms = _dark_rms(cap)
+    fused = JointOptions(fuse_still=True)
+    rows = {
+        "hdr-static": lambda: hdr_static(cap),
+        "paper": lambda: deblur(cap, "paper")[0],
+        "default": lambda: deblur(cap, "vet")[0],
+        "--fuse-still": lambda: deblur(cap, "vet", options=fused)[0],
+    }
+    print(f"GoldenGate {w}x{h} {spec}, seed 0, dark pixels (RMS, stops):", flush=True)
+    out = {}
+    for name, run in rows.items():
+        t0 = time.perf_counter()
+        out[name] = dark_rms(run().radiance)
+        print(f"  {name:13s} {out[name]:.7f}  ({time.perf_counter() - t0:.1f} s)", flush=True)
+    for name in ("default", "--fuse-still"):
+        holds = out[name] < out["paper"] <= out["hdr-static"]
+        print(f"  ranking deblur {name} < paper <= hdr-static: {'holds' if holds else 'fails'}")
+    return out
+
+
+if __name__ == "__main__":
+    main()
