@@ -36,8 +36,10 @@ two numbers, so it is far more accurate where the model holds. The estimate:
    layer most points clearly follow: a global motion); the label map is then cleaned
    with a median filter. A layer slower than :data:`MIN_SPEED_PX_S` is still; one
    that keeps under 1% of the points is merged into the largest.
-   Limitation: the evidence is in the measuring bins only. Where a bin's read noise
-   swamps the texture (``builtin:interior``'s dark wall gathers a few electrons per
+   Limitation: the evidence is in the measuring bins only. (The VET image alone cannot
+   tell: a pixel exposed the whole frame gathers the light of the sum of its bins,
+   whatever the motion; it could serve as a low-noise reference for the bins, but their
+   read noise remains.) Where a bin's read noise swamps the texture (``builtin:interior``'s dark wall gathers a few electrons per
    pixel and bin against about 20 e- of read noise), no scale makes it clear, and the
    moving points there stay with the default (still) layer: 63% of the points of the
    object ``80,64,160,128`` on a 320x256 interior (``make bench``, bench_layers).
