@@ -373,7 +373,9 @@ def _coarse_start(obs, L_init, velocity, T, frame_s, subframe_s, leakage, satura
     L_c0 = restrict_mean(L_init.astype(np.float64))
     vel_c = (velocity[: 2 * h2 : 2, : 2 * w2 : 2] / 2.0).astype(np.float32)
     sat_c = block_sum(saturated.astype(np.int32)) > 0
-    copts = replace(opts, levels=opts.levels - 1, history=[], update_motion=False)
+    # The coarse level only starts the moving pixels: still ones are fused, if asked, at
+    # full resolution.
+    copts = replace(opts, levels=opts.levels - 1, history=[], update_motion=False, fuse_still=False)
     L_c, _ = deblur_joint(
         cobs, L_c0.astype(np.float32), vel_c, t_c, frame_s, subframe_s, leakage, sat_c, copts
     )
