@@ -2,8 +2,8 @@
 
 For each scene in ../shared/data/hdr and both object placements of ``make
 evaluate-shared`` (the central quarter-area rectangle and the one on the scene's dark
-content, moving at 40,10 px/s), plus ``translate:30,0``, and first the README's
-``builtin:interior`` object: the layer velocities found, the share of the frame whose
+content, moving at 40,10 px/s), plus ``translate:30,0`` and a still capture, and first the README's
+``builtin:interior`` object and the same object at two placements away from the lamp: the layer velocities found, the share of the frame whose
 estimated velocity is more than 5 px/s off the truth (the wrong layer), that share among
 the dark pixels, the share of the truly moving points estimated still, and the
 estimate's run time. The shared scenes are skipped cleanly when ../shared is absent. Run: ``.venv/bin/python -m tests.benchmarks.bench_layers``.
@@ -55,13 +55,12 @@ def main() -> dict:
         out[(name, tag)] = wrong
 
     # The README's evaluate example: a lamp-lit object whose dark part (the wall, ~8 e-
-    # per pixel and measuring bin) the bins cannot show moving.
-    row(
-        "builtin:interior 320x256",
-        "object:80,64,160,128:40,10",
-        load_scene("builtin:interior", (320, 256)),
-        "object:80,64,160,128:40,10",
-    )
+    # per pixel and measuring bin) the bins cannot show moving; then the same object
+    # placed where the lamp is not (bottom left, top right): all dark wall and floor.
+    interior = load_scene("builtin:interior", (320, 256))
+    for xy in ("80,64", "0,128", "160,0"):
+        spec = f"object:{xy},160,128:40,10"
+        row("builtin:interior 320x256", spec, interior, spec)
     if not SHARED_HDR.is_dir():
         print("bench layers: ../shared/data/hdr absent, shared scenes skipped")
         return out
@@ -69,6 +68,7 @@ def main() -> dict:
         path = SHARED_HDR / f"{name}.exr"
         scene = load_scene(str(path))
         h, w = scene.radiance.shape[:2]
+        row(name, "none", scene, "none")  # a still capture: no layer may be invented
         for tag, spec in sweep_motions(path, w, h).items():
             row(name, tag, scene, spec)
     return out
