@@ -39,12 +39,13 @@ two numbers, so it is far more accurate where the model holds. The estimate:
    Limitation: the evidence is in the measuring bins only. (The VET image alone cannot
    tell: a pixel exposed the whole frame gathers the light of the sum of its bins,
    whatever the motion; it could serve as a low-noise reference for the bins, but their
-   read noise remains.) Where a bin's read noise swamps the texture (``builtin:interior``'s dark wall gathers a few electrons per
-   pixel and bin against about 20 e- of read noise), no scale makes it clear, and the
-   moving points there stay with the default (still) layer: 63% of the points of the
-   object ``80,64,160,128`` on a 320x256 interior, 88% of the same object placed at
-   ``0,128`` and all of it at ``160,0``, where no part of it is lit enough for its
-   velocity to be found (``make bench``, bench_layers).
+   read noise remains.) Where a bin's read noise swamps the texture
+   (``builtin:interior``'s dark wall gathers a few electrons per pixel and bin against
+   about 20 e- of read noise), no scale makes it clear, and the moving points there
+   stay with the default (still) layer: 63% of the points of the object
+   ``80,64,160,128`` on a 320x256 interior, 88% of the same object placed at ``0,128``
+   and all of it at ``160,0``, where no part of it is lit enough for its velocity to be
+   found (``make bench``, bench_layers).
    Lower thresholds (tried: a control velocity's evidence subtracted, four standard
    errors of the pooled mean) found them but also labelled still floor as moving.
 5. **Boundaries at full resolution.** Where the working grid is coarser than the

@@ -2,11 +2,13 @@
 
 For each scene in ../shared/data/hdr and both object placements of ``make
 evaluate-shared`` (the central quarter-area rectangle and the one on the scene's dark
-content, moving at 40,10 px/s), plus ``translate:30,0`` and a still capture, and first the README's
-``builtin:interior`` object and the same object at two placements away from the lamp: the layer velocities found, the share of the frame whose
-estimated velocity is more than 5 px/s off the truth (the wrong layer), that share among
-the dark pixels, the share of the truly moving points estimated still, and the
-estimate's run time. The shared scenes are skipped cleanly when ../shared is absent. Run: ``.venv/bin/python -m tests.benchmarks.bench_layers``.
+content, moving at 40,10 px/s), plus ``translate:30,0`` and a still capture, and first
+the README's ``builtin:interior`` object and the same object at two placements away from
+the lamp: the layer velocities found, the share of the frame whose estimated velocity is
+more than 5 px/s off the truth (the wrong layer), that share among the dark pixels, the
+share of the truly moving points estimated still, and the estimate's run time. The
+shared scenes are skipped cleanly when ../shared is absent. Run: ``.venv/bin/python -m
+tests.benchmarks.bench_layers``.
 """
 
 from __future__ import annotations
