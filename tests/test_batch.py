@@ -234,6 +234,29 @@ def test_batch_results_summary_and_exit_status(tree, tmp_path):
     assert manifest["vet_version"]
 
 
+def test_deblur_parameters_reach_the_stage(tree, tmp_path):
+    # Batch passes deblur.NAME=VALUE to stages.deblur.deblur(): --fuse-still as a parameter.
+    for rel in BAD:
+        (tree / rel).unlink()
+    out = tmp_path / "out"
+    r = vet(
+        "batch",
+        tree,
+        "-o",
+        out,
+        "-j",
+        "1",
+        "--steps",
+        "deblur",
+        "--param",
+        "deblur.fuse_still=true",
+    )
+    assert r.exit_code == 0, r.output
+    img = read_hdr(out / "a.deblur.exr")
+    assert img.meta["fuse_still"] is True
+    assert img.meta["provenance"][-1]["params"]["fuse_still"] is True
+
+
 def test_all_good_exits_zero(tree, tmp_path):
     for rel in BAD:
         (tree / rel).unlink()

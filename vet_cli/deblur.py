@@ -92,13 +92,8 @@ def cli(
     check_output(motion_picture, "display")
     cap = read_capture(capture)
     progress = Progress(f"deblur {method}")
-    options = None
-    if fuse_still:
-        from stages.deblur.joint import JointOptions
-
-        options = JointOptions(fuse_still=True)
     img, vel = deblur(
-        cap, method=method, motion_init=motion_init, progress=progress, options=options
+        cap, method=method, motion_init=motion_init, progress=progress, fuse_still=fuse_still
     )
     progress.finish()
     log.debug("deblur: %s in %.1f s", img.meta["method"], img.meta["runtime_s"])

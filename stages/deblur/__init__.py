@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -104,6 +105,7 @@ def deblur(
     progress: Callable[[int, int], None] | None = None,
     options: object | None = None,
     truth_cb: Callable[[np.ndarray], float] | None = None,
+    fuse_still: bool = False,
 ) -> tuple[HDRImage, np.ndarray]:
     """Deblur a VET capture.
 
@@ -123,6 +125,11 @@ def deblur(
         Tuning of the method.
     truth_cb : callable, optional
         Called with intermediate images in electrons/s, for error-vs-iteration figures.
+    fuse_still : bool
+        Method ``vet`` only: pixels no moving path touches take the maximum-likelihood
+        value of the VET image and the measuring images together instead of hdr-static's
+        (``JointOptions.fuse_still``; ``vet deblur --fuse-still``, and the batch
+        parameter ``deblur.fuse_still=true``).
 
     Returns
     -------
@@ -136,6 +143,8 @@ def deblur(
         raise InputError(f"unknown deblur method {method!r}; choose from {', '.join(METHODS)}")
     if cap.method != "vet":
         raise InputError(f"deblur needs a VET capture, not a {cap.method!r} one")
+    if fuse_still and method != "vet":
+        raise InputError("fusing the still pixels applies to the vet method only")
     motion_init = motion_init or ("layers" if method == "vet" else "farneback")
     t_start = time.perf_counter()
     static = hdr_static(cap)
@@ -156,6 +165,8 @@ def deblur(
         from .joint import JointOptions, deblur_joint
 
         opts = options if options is not None else JointOptions()
+        if fuse_still:
+            opts = replace(opts, fuse_still=True)
         obs = observations(cap, use_measure=opts.use_measure)
         L, vel = deblur_joint(
             obs,
