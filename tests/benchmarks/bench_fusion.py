@@ -2,8 +2,8 @@
 
 The default deblur leaves every pixel that no moving path touches at hdr-static, the
 maximum-likelihood value of its VET data; ``vet deblur --fuse-still``
-(``JointOptions.fuse_still``) gives such pixels the maximum-likelihood value of the VET
-image and the measuring images together. This prints what that trades:
+(``deblur(..., fuse_still=True)``) gives such pixels the maximum-likelihood value of
+the VET image and the measuring images together. This prints what that trades:
 
 1. a capture of a still scene (640x512 RGB ``builtin:interior``): the median change to
    hdr-static (the issue's target for a still scene is under 0.01 stops) and the
@@ -40,7 +40,6 @@ def still_scene(size: str = "640x512") -> dict:
     import numpy as np
 
     from stages.deblur import deblur
-    from stages.deblur.joint import JointOptions
     from stages.hdr_static import hdr_static
     from stages.motion import parse_motion
     from stages.rig import RigParams
@@ -61,7 +60,7 @@ def still_scene(size: str = "640x512") -> dict:
         flush=True,
     )
     for name, fuse in (("default", False), ("--fuse-still", True)):
-        img, _ = deblur(cap, "vet", options=JointOptions(fuse_still=fuse))
+        img, _ = deblur(cap, "vet", fuse_still=fuse)
         change = float(np.median(np.abs(np.log2(img.radiance / static))))
         out[name] = {"median_change": change, "dark_rms": dark_rms(img.radiance)}
         print(
@@ -74,7 +73,6 @@ def still_scene(size: str = "640x512") -> dict:
 
 def goldengate_object() -> dict | None:
     from stages.deblur import deblur
-    from stages.deblur.joint import JointOptions
     from stages.hdr_static import hdr_static
     from stages.motion import parse_motion
     from stages.rig import RigParams
@@ -92,12 +90,11 @@ def goldengate_object() -> dict | None:
     rig = RigParams(sensor_size=(w, h))
     cap = simulate(scene, parse_motion(spec), rig, seed=0, methods=["vet"])["vet"]
     dark_rms = _dark_rms(cap)
-    fused = JointOptions(fuse_still=True)
     rows = {
         "hdr-static": lambda: hdr_static(cap),
         "paper": lambda: deblur(cap, "paper")[0],
         "default": lambda: deblur(cap, "vet")[0],
-        "--fuse-still": lambda: deblur(cap, "vet", options=fused)[0],
+        "--fuse-still": lambda: deblur(cap, "vet", fuse_still=True)[0],
     }
     print(f"GoldenGate {w}x{h} {spec}, seed 0, dark pixels (RMS, stops):", flush=True)
     out = {}
