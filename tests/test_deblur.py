@@ -141,6 +141,23 @@ def test_fuse_still_gives_the_noise_of_all_the_data_on_a_still_scene():
     assert "fuse_still" not in default.meta
 
 
+def test_fuse_still_runs_at_full_resolution_only(monkeypatch):
+    # The coarse level only starts the moving pixels; fusing its still ones is wasted work.
+    import stages.deblur.joint as joint
+
+    seen = []
+    real = joint.fuse_still
+
+    def spy(obs, A, Ab, data_diag, pixels, fallback):
+        seen.append(obs.shape[:2])
+        return real(obs, A, Ab, data_diag, pixels, fallback)
+
+    monkeypatch.setattr(joint, "fuse_still", spy)
+    cap = _capture("object:32,24,64,48:40,10", 128, 96)
+    deblur(cap, "vet", motion_init="truth", fuse_still=True)
+    assert seen and set(seen) == {(96, 128)}
+
+
 def test_deblur_with_true_motion_beats_hdr_static_in_the_dark():
     cap = _capture("translate:30,0", 128, 96)
     static = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, cap.rig.frame_s)
