@@ -253,7 +253,7 @@ def test_deblur_parameters_reach_the_stage(tree, tmp_path):
     )
     assert r.exit_code == 0, r.output
     img = read_hdr(out / "a.deblur.exr")
-    assert img.meta["fuse_still"] is True
+    assert img.meta["still_pixels"] == "fused"
     assert img.meta["provenance"][-1]["params"]["fuse_still"] is True
 
 

@@ -118,6 +118,8 @@ def test_usage_errors_exit_2():
     assert invoke("no-such-command").exit_code == 2
     paper = invoke("deblur", "c.exr", "-o", "o.exr", "--method", "paper", "--fuse-still")
     assert paper.exit_code == 2 and "--method vet only" in paper.output
+    paper = invoke("deblur", "c.exr", "-o", "o.exr", "--method", "paper", "--keep-still")
+    assert paper.exit_code == 2 and "--keep-still applies to --method vet only" in paper.output
 
 
 def test_runtime_errors_in_arguments_exit_1(tmp_path):
@@ -235,21 +237,28 @@ def test_simulate_then_hdr_static_files_and_info(tmp_path):
 
 
 def test_deblur_fuse_still_is_recorded_in_the_file(tmp_path):
+    # A still capture: by default (and with --keep-still) deblur returns hdr-static's
+    # still pixels; --fuse-still gives them the value of all their data.
     cap, plain, fused = tmp_path / "c.npz", tmp_path / "p.exr", tmp_path / "f.exr"
+    kept = tmp_path / "k.exr"
     assert invoke("simulate", "builtin:interior", "--size", "64x48", "-o", cap).exit_code == 0
     assert invoke("deblur", cap, "-o", plain).exit_code == 0
     assert invoke("deblur", cap, "-o", fused, "--fuse-still").exit_code == 0
-    meta = {p: json.loads(invoke("info", p).output)["metadata"] for p in (plain, fused)}
-    assert meta[fused]["fuse_still"] is True and meta[fused]["provenance"][-1]["params"] == {
+    assert invoke("deblur", cap, "-o", kept, "--keep-still").exit_code == 0
+    meta = {p: json.loads(invoke("info", p).output)["metadata"] for p in (plain, fused, kept)}
+    assert meta[fused]["still_pixels"] == "fused" and meta[fused]["provenance"][-1]["params"] == {
         "method": "vet",
         "motion_init": "layers",
         "fuse_still": True,
     }
-    assert "fuse_still" not in meta[plain]
+    assert meta[plain]["still_pixels"] == meta[kept]["still_pixels"] == "hdr-static"
+    assert meta[plain]["provenance"][-1]["params"]["fuse_still"] == "auto"
+    assert meta[kept]["provenance"][-1]["params"]["fuse_still"] is False
     from stages.formats import read_hdr
 
-    a, b = read_hdr(plain).radiance, read_hdr(fused).radiance
+    a, b, k = (read_hdr(p).radiance for p in (plain, fused, kept))
     assert a.shape == b.shape and not np.array_equal(a, b)  # the still pixels moved
+    assert np.array_equal(a, k)
 
 
 def test_pipe_through_stdin_and_stdout(tmp_path):

@@ -8,6 +8,7 @@ import pytest
 from stages.deblur import deblur
 from stages.deblur.joint import JointOptions
 from stages.deblur.operator import Window, apply, apply_adjoint, blur_matrix, vet_windows
+from stages.errors import InputError
 from stages.hdr_static import hdr_static
 from stages.metrics import stops_error
 from stages.motion import parse_motion
@@ -136,9 +137,44 @@ def test_fuse_still_gives_the_noise_of_all_the_data_on_a_still_scene():
     ratio = float(np.std(fused[inner]) / np.std(static[inner]))
     assert abs(ratio - expected) < 0.03, (ratio, expected)
     assert abs(float(np.mean(fused[inner])) - 1.0) < 2e-3  # unbiased (truth is 1)
-    assert fused_img.meta["fuse_still"] is True
+    assert fused_img.meta["still_pixels"] == "fused"
     assert fused_img.meta["provenance"][-1]["params"]["fuse_still"] is True
-    assert "fuse_still" not in default.meta
+    assert default.meta["still_pixels"] == "hdr-static"  # nothing moves: nothing fused
+    assert default.meta["provenance"][-1]["params"]["fuse_still"] == "auto"
+
+
+def test_still_pixels_are_fused_by_default_when_something_moves():
+    # A flat dark background with a bright square moving over part of it: the pixels no
+    # moving path touches take the value of all their data by default (as --fuse-still),
+    # and hdr-static's with fuse_still=False; the moving ones are solved either way.
+    from stages.scenes import Scene
+
+    w, h = 96, 80
+    rig = RigParams(sensor_size=(w, h))
+    rad = np.ones((h, w, 1), np.float32)
+    rad[8:24, 8:24] = 20.0
+    cap = simulate(
+        Scene(rad, ["Y"], "square"),
+        parse_motion("object:8,8,16,16:20,0"),
+        rig,
+        seed=5,
+        methods=["vet"],
+        scale=2000.0 / rig.frame_s,
+    )["vet"]
+    static = hdr_static(cap).radiance[..., 0]
+    auto, _ = deblur(cap, "vet", motion_init="truth")
+    fused, _ = deblur(cap, "vet", motion_init="truth", fuse_still=True)
+    kept, _ = deblur(cap, "vet", motion_init="truth", fuse_still=False)
+    assert np.array_equal(auto.radiance, fused.radiance)
+    assert auto.meta["still_pixels"] == "fused" and kept.meta["still_pixels"] == "hdr-static"
+    far = (slice(40, -4), slice(4, -4))  # well away from the square's sweep
+    assert np.array_equal(kept.radiance[..., 0][far], static[far])
+    a = auto.radiance[..., 0][far]
+    assert not np.array_equal(a, static[far])
+    assert np.std(a) < 0.9 * np.std(static[far])  # ~0.85: the noise of all the data
+    assert abs(float(np.mean(a)) - 1.0) < 3e-3
+    with pytest.raises(InputError, match="true, false or auto"):
+        deblur(cap, "vet", fuse_still="maybe")
 
 
 def test_fuse_still_runs_at_full_resolution_only(monkeypatch):
@@ -182,8 +218,6 @@ def test_paper_method_runs_and_keeps_units():
 
 
 def test_deblur_refuses_comparison_captures():
-    from stages.errors import InputError
-
     scene = builtin_interior(32, 24)
     cap = simulate(scene, parse_motion("none"), RigParams(sensor_size=(32, 24)), methods=["long"])[
         "long"

@@ -16,9 +16,10 @@ exposure image I, the exposure time image T and the measuring images. --method v
 default) estimates a layered motion (still background and translating layers, with
 occlusion) from all the measuring images and solves a noise-weighted misfit on I and
 the measuring images with conjugate gradients, coarse to fine (2x2 blocks first),
-robust at occlusions; pixels whose integration path does not move keep hdr-static
-(--fuse-still: the value all their data give); --method paper
-reproduces the published method (least squares on I, Laplacian and
+robust at occlusions; pixels whose integration path does not move take the value of
+all their data (I and the measuring images) when anything moves, and hdr-static's when
+nothing does (a still capture comes out as hdr-static; --fuse-still and --keep-still
+choose one always); --method paper reproduces the published method (least squares on I, Laplacian and
 histogram-intersection priors, steepest descent). --motion-init truth uses the
 simulator's true motion: an oracle for research.
 Output is float32 EXR in the units of hdr-static, with its mask and T.
@@ -60,12 +61,12 @@ Example:
     help="Also write a colour-wheel picture of the estimated motion.",
 )
 @click.option(
-    "--fuse-still",
-    is_flag=True,
-    help="Still pixels (no moving path touches them) take the maximum-likelihood value of "
-    "the VET image and the measuring images together instead of hdr-static's (the VET data "
-    "alone): less noise, but a still scene no longer comes out as hdr-static. "
-    "--method vet only.",
+    "--fuse-still/--keep-still",
+    default=None,
+    help="What pixels no moving path touches take: --fuse-still the maximum-likelihood "
+    "value of the VET image and the measuring images together, a still capture too; "
+    "--keep-still hdr-static's (the VET data alone). Default: fused when some pixel "
+    "moves, hdr-static's when none does. --method vet only.",
 )
 @verbosity_options
 @command("deblur")
@@ -76,7 +77,7 @@ def cli(
     motion_init: str | None,
     motion_out: str | None,
     motion_picture: str | None,
-    fuse_still: bool,
+    fuse_still: bool | None,
 ) -> None:
     from stages.deblur import deblur
     from stages.flow import motion_picture as picture
@@ -85,8 +86,9 @@ def cli(
     from stages.formats.images import write_display_image
     from stages.formats.io import check_output
 
-    if fuse_still and method != "vet":
-        raise click.UsageError("--fuse-still applies to --method vet only")
+    if fuse_still is not None and method != "vet":
+        flag = "--fuse-still" if fuse_still else "--keep-still"
+        raise click.UsageError(f"{flag} applies to --method vet only")
     check_output(output)
     check_output(motion_out)
     check_output(motion_picture, "display")

@@ -105,7 +105,7 @@ def deblur(
     progress: Callable[[int, int], None] | None = None,
     options: object | None = None,
     truth_cb: Callable[[np.ndarray], float] | None = None,
-    fuse_still: bool = False,
+    fuse_still: bool | str | None = None,
 ) -> tuple[HDRImage, np.ndarray]:
     """Deblur a VET capture.
 
@@ -125,11 +125,15 @@ def deblur(
         Tuning of the method.
     truth_cb : callable, optional
         Called with intermediate images in electrons/s, for error-vs-iteration figures.
-    fuse_still : bool
-        Method ``vet`` only: pixels no moving path touches take the maximum-likelihood
-        value of the VET image and the measuring images together instead of hdr-static's
-        (``JointOptions.fuse_still``; ``vet deblur --fuse-still``, and the batch
-        parameter ``deblur.fuse_still=true``).
+    fuse_still : {None, 'auto', True, False}
+        Method ``vet``: which value pixels that no moving path touches take
+        (``JointOptions.fuse_still``). ``None`` or ``'auto'`` (the default): the
+        maximum-likelihood value of the VET image and the measuring images together when
+        the motion moves some pixel, hdr-static's when it moves none (a still capture
+        comes out as hdr-static). ``True``: always the fused value (``vet deblur
+        --fuse-still``); ``False``: always hdr-static's (``--keep-still``). In ``vet
+        batch``: ``--param deblur.fuse_still=true|false|auto``. The image's metadata
+        ``still_pixels`` says which they took (``fused`` or ``hdr-static``).
 
     Returns
     -------
@@ -143,8 +147,12 @@ def deblur(
         raise InputError(f"unknown deblur method {method!r}; choose from {', '.join(METHODS)}")
     if cap.method != "vet":
         raise InputError(f"deblur needs a VET capture, not a {cap.method!r} one")
-    if fuse_still and method != "vet":
-        raise InputError("fusing the still pixels applies to the vet method only")
+    if fuse_still == "auto":
+        fuse_still = None
+    if fuse_still not in (None, True, False):
+        raise InputError(f"fuse_still must be true, false or auto, not {fuse_still!r}")
+    if fuse_still is not None and method != "vet":
+        raise InputError("choosing what still pixels take applies to the vet method only")
     motion_init = motion_init or ("layers" if method == "vet" else "farneback")
     t_start = time.perf_counter()
     static = hdr_static(cap)
@@ -165,9 +173,10 @@ def deblur(
         from .joint import JointOptions, deblur_joint
 
         opts = options if options is not None else JointOptions()
-        if fuse_still:
-            opts = replace(opts, fuse_still=True)
+        if fuse_still is not None:
+            opts = replace(opts, fuse_still=fuse_still)
         obs = observations(cap, use_measure=opts.use_measure)
+        report: dict = {}
         L, vel = deblur_joint(
             obs,
             *start,
@@ -176,8 +185,13 @@ def deblur(
             progress=progress,
             truth_cb=truth_cb,
             still=~np.any(vel0 != 0, axis=2) if motion_init != "truth" else None,
+            report=report,
         )
         name = "vet-deblur"
+        setting = {None: "auto", True: True, False: False}[opts.fuse_still]
+        fused = report.get("fused_still", 0) > 0
+        params = {"fuse_still": setting}
+        extra = {"still_pixels": "fused" if fused else "hdr-static"}
     else:
         from .paper import PaperOptions, deblur_paper
 
@@ -193,7 +207,7 @@ def deblur(
             truth_cb=truth_cb,
         )
         name = "vet-deblur-paper"
-    extra = {"fuse_still": True} if getattr(opts, "fuse_still", False) else {}
+        params, extra = {}, {}  # (the paper's prior smooths every pixel)
     # Pixels hdr-static could only bound keep its value (the deblur has no data there).
     L = np.where(bound_only[..., None], np.maximum(L, L_init), L)
     radiance, units = rate_to_output_units(cap, L.astype(np.float32))
@@ -203,7 +217,7 @@ def deblur(
         motion_init=motion_init,
         runtime_s=round(time.perf_counter() - t_start, 3),
         provenance=list(cap.meta.get("provenance", []))
-        + [provenance_entry("deblur", method=method, motion_init=motion_init, **extra)],
+        + [provenance_entry("deblur", method=method, motion_init=motion_init, **params)],
     )
     meta.update(extra)
     meta["units"] = units

@@ -36,20 +36,25 @@ the error against the fine iterations).
 
 Only the pixels that a moving integration path touches are re-estimated
 (:func:`moving_support`). A pixel whose paths do not move sees only its own point of
-the scene and keeps hdr-static, the noise-weighted maximum-likelihood value of its VET
-data (I and T). The measuring images saw it too, for the whole frame; fusing them in
-would lower its noise (most for bright pixels that closed early, less for dark ones,
-whose measuring sum carries the read noise of every subframe), but would also move
-every still pixel by about its own noise. Deblur undoes blur and leaves what did not
-move as hdr-static, so a still scene (or a still background) comes out exactly as
-hdr-static; the measuring bins and the prior act only where the blur has to be undone.
-``JointOptions.fuse_still`` (``vet deblur --fuse-still``) gives those pixels the
-maximum-likelihood value of all their data instead (:func:`fuse_still`). ``make bench``
-(bench_fusion) measures the trade: on a still 640x512 interior it moves hdr-static by
-0.026 stops median (the still-scene target is under 0.01) for a dark-pixel RMS of 0.3096
-instead of 0.3102 stops; on GoldenGate with its central object, where no dark pixel
-moves, it takes the dark-pixel RMS from hdr-static's 0.01822 to 0.01504 stops, below the
-paper method's 0.01820 (whose Laplacian smoothing denoises).
+the scene, and its column of every operator holds only its own static row, so its
+noise-weighted maximum-likelihood value from all its data (the VET image and the
+measuring bins) has a closed form (:func:`fuse_still`); the VET data alone give
+hdr-static's. ``JointOptions.fuse_still`` decides which a still pixel takes:
+
+* ``None`` (the default): the fused value whenever the motion moves some pixel, and
+  hdr-static's, untouched, when it moves none. A capture in which deblur finds no
+  motion comes out exactly as hdr-static (deblur invents nothing on a still scene);
+  one with motion is reconstructed from all its data, the moving pixels by the solve
+  and the still ones by :func:`fuse_still`.
+* ``True``: always fused, a still capture too (``vet deblur --fuse-still``).
+* ``False``: never; still pixels keep hdr-static (``vet deblur --keep-still``).
+
+``make bench`` (bench_fusion) measures what it trades. On a still 640x512 interior,
+fusing moves hdr-static by 0.026 stops median (the still-scene target is under 0.01) for
+a dark-pixel RMS of 0.3096 instead of 0.3102 stops (the measuring sum of a dark pixel
+carries the read noise of every subframe). On GoldenGate with its central object, where
+no dark pixel moves, it takes the dark-pixel RMS from hdr-static's 0.01822 to 0.01504
+stops, below the paper method's 0.01820 (whose Laplacian smoothing denoises).
 Pixels the VET sensor saturated carry no weight in the VET term (clipped data) and are
 estimated from the measuring bins and the paths crossing them; only those clipped in
 the first bin too, for which hdr-static has no more than a lower bound, are anchored
@@ -95,7 +100,7 @@ class JointOptions:
     cauchy_k: float = 2.0
     update_motion: bool = False
     use_measure: bool = True
-    fuse_still: bool = False
+    fuse_still: bool | None = None
     step_px: float = 1.0
     levels: int = 1
     coarse_min_px: int = 48
@@ -324,10 +329,9 @@ def moving_support(A: sp.csr_matrix, Ab: StackedOperator | None = None) -> np.nd
     """Pixels of ``L0`` that some moving integration path samples, bool (H W,).
 
     A row of the operator whose path does not move sees only its own pixel: the static
-    model, for which the pixel keeps hdr-static (the maximum-likelihood value of its VET
-    data; see the module docstring for why the measuring images are not fused there by
-    default, and :func:`fuse_still`). Only the pixels that a moving path touches (the
-    columns of the other rows) are re-estimated.
+    model, for which the pixel's value has a closed form (hdr-static's from its VET data,
+    or :func:`fuse_still`'s from all of it; see ``JointOptions.fuse_still``). Only the
+    pixels that a moving path touches (the columns of the other rows) are re-estimated.
     """
     n = A.shape[1]
     free = np.zeros(n, bool)
@@ -400,6 +404,7 @@ def deblur_joint(
     progress: Callable[[int, int], None] | None = None,
     truth_cb: Callable[[np.ndarray], float] | None = None,
     still: np.ndarray | None = None,
+    report: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint image and motion estimation (see the module docstring).
 
@@ -425,6 +430,9 @@ def deblur_joint(
         logged with the iteration in ``opts.history`` (benchmarks: error vs iterations).
     still : ndarray of shape (H, W), bool, optional
         Pixels known to be still (their velocity stays zero through the motion steps).
+    report : dict, optional
+        Filled with ``fused_still``: the number of still pixels given the value of all
+        their data (:func:`fuse_still`; see ``JointOptions.fuse_still``).
 
     Returns
     -------
@@ -437,6 +445,8 @@ def deblur_joint(
     h, wd, c = obs.shape
     n = h * wd
     start = None
+    if report is not None:
+        report["fused_still"] = 0
     if opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0):
         start = _coarse_start(
             obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts
@@ -471,9 +481,12 @@ def deblur_joint(
             if start is not None:
                 L = np.where(free[:, None], np.maximum(start, floor), L)
                 start = None
-            if opts.fuse_still and Ab is not None:
+            fusing = opts.fuse_still if opts.fuse_still is not None else bool(free.any())
+            if fusing and Ab is not None:
                 fuse = ~free & ~saturated.reshape(n)
                 L[fuse] = np.maximum(fuse_still(obs, A, Ab, data_diag, fuse, L[fuse]), floor[fuse])
+                if report is not None:
+                    report["fused_still"] = int(fuse.sum())
         if not free.any():
             log.debug("deblur: no pixel's integration path moves; the result is hdr-static")
             break
