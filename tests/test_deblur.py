@@ -255,3 +255,19 @@ def test_paper_method_moves_dark_pixels_towards_the_truth():
     img, _ = deblur(cap, "paper", motion_init="truth")
     paper = stops_error(img.radiance, cap.truth, cap.T, cap.rig.frame_s)
     assert paper["dark"]["rms"] < 0.97 * static["dark"]["rms"]
+
+
+def test_clipped_vet_codes_carry_no_weight():
+    # The full well sits at the top code and read noise after the well spreads clipped
+    # pixels below it: the misfit must drop every code hdr-static calls clipped, not only
+    # the top one (a clipped code with weight pulled fused still pixels low: Cannon).
+    from stages.deblur.problem import observations
+
+    rig = RigParams(sensor_size=(32, 24))
+    cap = simulate(builtin_interior(32, 24), parse_motion("none"), rig, methods=["vet"])["vet"]
+    sat = float(np.ceil(rig.saturation_dn))
+    assert sat < rig.max_dn - 0.5
+    cap.I[0, 0, 0], cap.I[0, 1, 0] = sat, sat - 2.0
+    obs = observations(cap)
+    assert obs.w[0, 0] == 0.0 and obs.w[1, 0] > 0.0
+    assert hdr_static(cap).mask[0, 0] != 0 and hdr_static(cap).mask[0, 1] == 0

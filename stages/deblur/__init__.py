@@ -189,9 +189,8 @@ def deblur(
         )
         name = "vet-deblur"
         setting = {None: "auto", True: True, False: False}[opts.fuse_still]
-        fused = report.get("fused_still", 0) > 0
         params = {"fuse_still": setting}
-        extra = {"still_pixels": "fused" if fused else "hdr-static"}
+        extra = {"still_pixels": "fused" if report["still_fused"] else "hdr-static"}
     else:
         from .paper import PaperOptions, deblur_paper
 

@@ -431,8 +431,9 @@ def deblur_joint(
     still : ndarray of shape (H, W), bool, optional
         Pixels known to be still (their velocity stays zero through the motion steps).
     report : dict, optional
-        Filled with ``fused_still``: the number of still pixels given the value of all
-        their data (:func:`fuse_still`; see ``JointOptions.fuse_still``).
+        Filled with ``still_fused``: whether the pixels no moving path touches were
+        given the value of all their data (:func:`fuse_still`; see
+        ``JointOptions.fuse_still``).
 
     Returns
     -------
@@ -446,7 +447,7 @@ def deblur_joint(
     n = h * wd
     start = None
     if report is not None:
-        report["fused_still"] = 0
+        report["still_fused"] = False
     if opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0):
         start = _coarse_start(
             obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts
@@ -485,8 +486,8 @@ def deblur_joint(
             if fusing and Ab is not None:
                 fuse = ~free & ~saturated.reshape(n)
                 L[fuse] = np.maximum(fuse_still(obs, A, Ab, data_diag, fuse, L[fuse]), floor[fuse])
-                if report is not None:
-                    report["fused_still"] = int(fuse.sum())
+            if report is not None:
+                report["still_fused"] = bool(fusing and Ab is not None)
         if not free.any():
             log.debug("deblur: no pixel's integration path moves; the result is hdr-static")
             break
