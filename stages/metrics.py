@@ -39,6 +39,7 @@ def stops_error(
     border: int = BORDER_PX,
     floor_frac: float = 1e-4,
     floor: float | None = None,
+    mask: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Error |log2(estimate / truth)| on luminance, over valid pixels, with statistics.
 
@@ -60,6 +61,8 @@ def stops_error(
         Absolute floor on the true luminance (truth units); pixels at or below it are
         excluded. :func:`measurable_floor` gives the one of a rig: where even a
         whole-frame exposure gathers less signal than noise.
+    mask : ndarray of shape (H, W), bool, optional
+        Score only these pixels (within the border and above the floor).
 
     Returns
     -------
@@ -73,6 +76,10 @@ def stops_error(
     h, w = lt.shape
     region = np.zeros((h, w), bool)
     region[border : h - border, border : w - border] = True
+    if mask is not None:
+        if mask.shape != (h, w):
+            raise ValueError(f"mask {mask.shape} and image {(h, w)} differ in shape")
+        region &= mask
     if floor is None:
         floor = floor_frac * float(np.percentile(lt, 99.9))
     region &= lt > floor

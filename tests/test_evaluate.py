@@ -242,3 +242,21 @@ def test_motion_picture_shows_no_estimate_when_deblur_did_not_run():
     both = motion_picture(ev)
     assert alone.shape[0] == both.shape[0]
     assert both.shape[1] - alone.shape[1] >= 40  # the estimated panel's width and more
+
+
+def test_stops_error_scores_only_the_mask():
+    # Known answer: the estimate is twice the truth (1 stop) on the left half, exact on
+    # the right; scoring the left half alone gives exactly 1 stop and its pixel count.
+    from stages.metrics import stops_error
+
+    truth = np.full((40, 60, 1), 3.0, np.float32)
+    est = truth.copy()
+    est[:, :30] *= 2.0
+    left = np.zeros((40, 60), bool)
+    left[:, :30] = True
+    whole = stops_error(est, truth, border=0, floor=0.0)
+    part = stops_error(est, truth, border=0, floor=0.0, mask=left)
+    assert whole["all"]["n"] == 2400 and abs(whole["all"]["rms"] - np.sqrt(0.5)) < 1e-6
+    assert part["all"]["n"] == 1200 and part["all"]["rms"] == 1.0 and part["scale"] == 2.0
+    with pytest.raises(ValueError, match="mask"):
+        stops_error(est, truth, mask=left[:10])
