@@ -13,7 +13,11 @@ the motion moves some pixel and keeps hdr-static when it moves none;
 2. GoldenGate with the central quarter-area object, ``object:W/4,H/4,W/2,H/2:40,10``
    (needs ../shared; no dark pixel there moves, so the ranking default deblur < paper
    deblur rests on the still pixels): dark-pixel RMS error of hdr-static, the paper
-   method, the default deblur and ``--keep-still``.
+   method, the default deblur and ``--keep-still``;
+3. Cannon with the central quarter-area object (needs ../shared; a bright scene, no
+   pixel exposed the whole frame): over the pixels no moving path touches, the error of
+   hdr-static's value (``--keep-still``) and of the fused one (the default), split by
+   exposure time, with the global scale (2 ** median signed error: a bias shows there).
 
 Errors are scored as ``vet evaluate`` scores them (stops, measurable floor, 8 px
 border). Run: ``.venv/bin/python -m tests.benchmarks.run fusion``.
@@ -25,7 +29,11 @@ import time
 
 
 def main() -> dict:
-    return {"still": still_scene(), "goldengate_object": goldengate_object()}
+    return {
+        "still": still_scene(),
+        "goldengate_object": goldengate_object(),
+        "cannon_object": cannon_object(),
+    }
 
 
 def _dark_rms(cap):
@@ -73,24 +81,34 @@ def still_scene(size: str = "640x512") -> dict:
     return out
 
 
-def goldengate_object() -> dict | None:
-    from stages.deblur import deblur
-    from stages.hdr_static import hdr_static
+def _central_object(name: str):
+    """Capture (seed 0) of shared scene ``name`` with its central quarter-area object
+    moving at (40, 10) px/s, and the motion spec; None without ../shared."""
     from stages.motion import parse_motion
     from stages.rig import RigParams
     from stages.scenes import load_scene
     from stages.simulate import simulate
     from tests.benchmarks.common import SHARED_HDR
 
-    path = SHARED_HDR / "GoldenGate.exr"
+    path = SHARED_HDR / f"{name}.exr"
     if not path.exists():
-        print(f"GoldenGate object: skipped ({path} not present)", flush=True)
-        return None
+        print(f"{name} object: skipped ({path} not present)", flush=True)
+        return None, None
     scene = load_scene(str(path), None)
     h, w = scene.radiance.shape[:2]
     spec = f"object:{w // 4},{h // 4},{w // 2},{h // 2}:40,10"
     rig = RigParams(sensor_size=(w, h))
-    cap = simulate(scene, parse_motion(spec), rig, seed=0, methods=["vet"])["vet"]
+    return simulate(scene, parse_motion(spec), rig, seed=0, methods=["vet"])["vet"], spec
+
+
+def goldengate_object() -> dict | None:
+    from stages.deblur import deblur
+    from stages.hdr_static import hdr_static
+
+    cap, spec = _central_object("GoldenGate")
+    if cap is None:
+        return None
+    h, w = cap.shape
     dark_rms = _dark_rms(cap)
     rows = {
         "hdr-static": lambda: hdr_static(cap),
@@ -107,6 +125,51 @@ def goldengate_object() -> dict | None:
     for name in ("default", "--keep-still"):
         holds = out[name] < out["paper"] <= out["hdr-static"]
         print(f"  ranking deblur {name} < paper <= hdr-static: {'holds' if holds else 'fails'}")
+    return out
+
+
+def cannon_object() -> dict | None:
+    import numpy as np
+
+    from stages.deblur import deblur
+    from stages.hdr_static import hdr_static
+    from stages.metrics import measurable_floor, stops_error
+
+    cap, spec = _central_object("Cannon")
+    if cap is None:
+        return None
+    h, w = cap.shape
+    static = hdr_static(cap).radiance
+    kept, _ = deblur(cap, "vet", fuse_still=False)
+    fused, _ = deblur(cap, "vet")
+    assert fused.meta["still_pixels"] == "fused"
+    # Pixels no moving path touches: exactly hdr-static's with --keep-still.
+    still = np.all(kept.radiance == static, axis=2)
+    floor = measurable_floor(cap.rig, float(cap.radiance_scale))
+    tf = cap.rig.frame_s
+    groups = {
+        "T < 50 ms": still & (cap.T < 0.05),
+        "50 ms <= T < frame": still & (cap.T >= 0.05) & (cap.T < tf * (1 - 1e-6)),
+        "whole frame": still & (cap.T >= tf * (1 - 1e-6)),
+    }
+    print(
+        f"Cannon {w}x{h} {spec}, seed 0: {float(still.mean()):.1%} of pixels still;"
+        " still pixels (stops):",
+        flush=True,
+    )
+    out = {}
+    for gname, mask in groups.items():
+        row = {}
+        for name, img in (("--keep-still", kept), ("default (fused)", fused)):
+            err = stops_error(img.radiance, cap.truth, floor=floor, mask=mask)
+            row[name] = {"rms": err["all"]["rms"], "n": err["all"]["n"], "scale": err["scale"]}
+        out[gname] = row
+        k, f = row["--keep-still"], row["default (fused)"]
+        print(
+            f"  {gname:19s} n={k['n']:7d}  RMS --keep-still {k['rms']:.4f}, default {f['rms']:.4f};"
+            f" scale {k['scale']:.4f}, {f['scale']:.4f}",
+            flush=True,
+        )
     return out
 
 
