@@ -54,7 +54,9 @@ fusing moves hdr-static by 0.026 stops median (the still-scene target is under 0
 a dark-pixel RMS of 0.3096 instead of 0.3102 stops (the measuring sum of a dark pixel
 carries the read noise of every subframe). On GoldenGate with its central object, where
 no dark pixel moves, it takes the dark-pixel RMS from hdr-static's 0.01822 to 0.01504
-stops, below the paper method's 0.01820 (whose Laplacian smoothing denoises).
+stops, below the paper method's 0.01820 (whose Laplacian smoothing denoises). On Cannon,
+a bright scene, it cuts the still pixels' RMS error from 0.0059 to 0.0028 stops (closed
+within 50 ms) and from 0.0109 to 0.0038 (closed later), with no bias.
 Pixels the VET sensor saturated carry no weight in the VET term (clipped data) and are
 estimated from the measuring bins and the paths crossing them; only those clipped in
 the first bin too, for which hdr-static has no more than a lower bound, are anchored
