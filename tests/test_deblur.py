@@ -192,6 +192,11 @@ def test_fuse_still_runs_at_full_resolution_only(monkeypatch):
     cap = _capture("object:32,24,64,48:40,10", 128, 96)
     deblur(cap, "vet", motion_init="truth", fuse_still=True)
     assert seen and set(seen) == {(96, 128)}
+    # A global translation moves every pixel: nothing to fuse, so no fusing products
+    # (a whole-frame pass over the VET image and every bin) on the benchmark's path.
+    seen.clear()
+    img, _ = deblur(_capture("translate:30,0", 128, 96), "vet", motion_init="truth")
+    assert seen == [] and img.meta["still_pixels"] == "fused"
 
 
 def test_deblur_with_true_motion_beats_hdr_static_in_the_dark():

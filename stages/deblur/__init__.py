@@ -188,8 +188,7 @@ def deblur(
             report=report,
         )
         name = "vet-deblur"
-        setting = {None: "auto", True: True, False: False}[opts.fuse_still]
-        params = {"fuse_still": setting}
+        params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}
         extra = {"still_pixels": "fused" if report["still_fused"] else "hdr-static"}
     else:
         from .paper import PaperOptions, deblur_paper

@@ -484,12 +484,14 @@ def deblur_joint(
             if start is not None:
                 L = np.where(free[:, None], np.maximum(start, floor), L)
                 start = None
-            fusing = opts.fuse_still if opts.fuse_still is not None else bool(free.any())
-            if fusing and Ab is not None:
-                fuse = ~free & ~saturated.reshape(n)
+            fusing = Ab is not None and (
+                opts.fuse_still if opts.fuse_still is not None else bool(free.any())
+            )
+            fuse = ~free & ~saturated.reshape(n) if fusing else None
+            if fusing and fuse.any():  # (a global motion leaves no pixel to fuse)
                 L[fuse] = np.maximum(fuse_still(obs, A, Ab, data_diag, fuse, L[fuse]), floor[fuse])
             if report is not None:
-                report["still_fused"] = bool(fusing and Ab is not None)
+                report["still_fused"] = bool(fusing)
         if not free.any():
             log.debug("deblur: no pixel's integration path moves; the result is hdr-static")
             break
