@@ -27,6 +27,7 @@ import numpy as np
 
 from .formats.capture import Capture
 from .formats.layered import Layered, write_layered
+from .physics import bin_may_clip
 
 FLOW_METHODS = ("farneback", "dis")
 
@@ -58,8 +59,7 @@ def measure_rates(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     scale = (dur * rig.measure_fraction).reshape(shape)
     rate = (e / scale).astype(np.float32)
     sigma = (np.sqrt(var) / scale).astype(np.float32)
-    per_sub = cap.measure / n_sub.reshape(shape).astype(np.float32)
-    valid = (per_sub < np.float32(rig.max_dn * 0.95)).all(axis=3)
+    valid = ~bin_may_clip(cap.measure / n_sub.reshape(shape).astype(np.float32), rig)
     return rate, sigma, valid
 
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from .formats.capture import Capture, provenance_entry
 from .formats.hdr import HDRImage
+from .physics import bin_may_clip
 
 #: A pixel whose signal is below this many electrons carries no information.
 NOISE_FLOOR_E = 1.0
@@ -127,6 +128,5 @@ def _rate_from_measure(cap: Capture) -> tuple[np.ndarray | None, np.ndarray]:
     )
     # Valid unless some subframe of the bin may have clipped; for a still pixel the
     # subframes are alike, so the bin mean per subframe tells.
-    per_sub = m0 / n_sub
-    ok = (per_sub < np.float32(rig.saturation_dn)).all(axis=2)
+    ok = ~bin_may_clip(m0 / np.float32(n_sub), rig)
     return rate.astype(np.float32), ok

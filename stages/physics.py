@@ -125,6 +125,21 @@ def expose(
     return e
 
 
+def bin_may_clip(per_sub_dn: np.ndarray, rig: RigParams) -> np.ndarray:
+    """Where a measuring bin may hold a clipped subframe: (..., C) -> (...) bool.
+
+    ``per_sub_dn`` is a bin's sum divided by its number of subframes (the mean code of
+    one subframe). Each subframe spreads about that mean by its shot noise; the bin is
+    suspect when the 3-sigma shot tail reaches :attr:`RigParams.saturation_dn`, where
+    codes may be clipped (the test the VET image gets, to which this reduces without
+    shot noise). In any channel: the channels of a pixel are fitted together. One test
+    for everyone who reads the bins (hdr-static, flow, the deblur misfit).
+    """
+    g = np.float32(rig.gain_dn_per_e)
+    shot_dn = np.sqrt(np.maximum(per_sub_dn, 0) * g)  # g * sqrt(electrons)
+    return (per_sub_dn + np.float32(3.0) * shot_dn >= np.float32(rig.saturation_dn)).any(axis=-1)
+
+
 def brightest_channel(frame: np.ndarray) -> np.ndarray:
     """Per-pixel maximum over channels of (H, W, C) (or (H, W) as is).
 

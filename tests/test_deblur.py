@@ -276,3 +276,24 @@ def test_clipped_vet_codes_carry_no_weight():
     obs = observations(cap)
     assert obs.w[0, 0] == 0.0 and obs.w[1, 0] > 0.0
     assert hdr_static(cap).mask[0, 0] != 0 and hdr_static(cap).mask[0, 1] == 0
+
+
+def test_measuring_bins_are_called_clipped_alike_by_all_their_readers():
+    # hdr-static, flow and the deblur misfit read the same bins; they must agree which
+    # may hold a clipped subframe (they used to test 0.95 max_dn against saturation_dn).
+    from stages.deblur.problem import observations
+    from stages.flow import measure_rates
+    from stages.hdr_static import _rate_from_measure
+
+    rig = RigParams(sensor_size=(32, 24))
+    cap = simulate(builtin_interior(32, 24), parse_motion("none"), rig, methods=["vet"])["vet"]
+    n_sub = np.rint(np.diff(cap.measure_times, axis=1)[:, 0] / rig.subframe_s)
+    # (0, 0): 3930 DN a subframe, under the flag (3967); (0, 1): 4020, over it, yet
+    # under saturation_dn; in one channel of (0, 1) only.
+    cap.measure[:, 0, 0, :] = (3930.0 * n_sub)[:, None]
+    cap.measure[:, 0, 1, 0] = 4020.0 * n_sub
+    _, _, valid = measure_rates(cap)
+    _, ok = _rate_from_measure(cap)
+    wb = observations(cap).wb.reshape(len(n_sub), 24, 32, -1)
+    assert valid[:, 0, 0].all() and (wb[:, 0, 0] > 0).all() and ok[0, 0]
+    assert not valid[:, 0, 1].any() and (wb[:, 0, 1] == 0).all() and not ok[0, 1]

@@ -262,3 +262,34 @@ def test_brightest_channel_is_the_per_pixel_maximum(rng):
     np.testing.assert_array_equal(brightest_channel(mono), mono[..., 0])
     ints = rng.integers(-64, 4096, (5, 4, 3)).astype(np.int16)
     np.testing.assert_array_equal(brightest_channel(ints), ints.max(axis=2))
+
+
+def test_bin_may_clip_flags_the_bins_whose_subframes_clip():
+    # Known answer by sampling: bins of 16 subframes through the sensor chain. Below the
+    # flag, hardly any subframe reaches a code that may be clipped; above it, many do.
+    from stages.physics import bin_may_clip
+
+    rig = RigParams()
+    g = rig.gain_dn_per_e
+    rng = np.random.default_rng(3)
+    # The shot-free limit is the VET image's test.
+    deep = RigParams(full_well_e=1e12)
+    edge = np.array([[deep.saturation_dn - 0.1], [deep.saturation_dn]], np.float32)
+    assert bin_may_clip(edge, deep).tolist() == [False, True]
+
+    def bins(mean_dn):
+        subs = np.stack(
+            [expose(np.full((4000, 1), mean_dn / g, np.float32), rig, rng) for _ in range(16)]
+        )
+        return (subs >= rig.saturation_dn).any(axis=0)[:, 0].mean(), bin_may_clip(
+            subs.mean(axis=0), rig
+        ).mean()
+
+    # Well below: no subframe near a clipped code, no bin flagged; well above: most
+    # bins hold one, every bin flagged; at the flag (3967 DN here) one bin in ~50 does
+    # (16 subframes, each 3 sigma from a clipped code), and half the bins are flagged.
+    assert bins(3900.0) == (0.0, 0.0)
+    clipped, flagged = bins(4040.0)
+    assert clipped > 0.8 and flagged == 1.0
+    clipped, flagged = bins(3967.0)
+    assert 0.005 < clipped < 0.05 and 0.3 < flagged < 0.7

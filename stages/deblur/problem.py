@@ -16,6 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..formats.capture import Capture
+from ..physics import bin_may_clip
 from .operator import Window, blur_matrix, vet_windows
 
 
@@ -75,8 +76,8 @@ def observations(cap: Capture, use_measure: bool = True) -> Observations:
         yb = eb - (rig.dark_current_e_s * dur).reshape(-1, 1, 1, 1)
         varb = np.maximum(eb, 0) + (n_sub * (rig.read_noise_e**2 + q)).reshape(-1, 1, 1, 1)
         wb = 1.0 / varb
-        clipped = (cap.measure / n_sub.reshape(-1, 1, 1, 1)) >= rig.max_dn * 0.95
-        wb[np.broadcast_to(clipped.any(axis=3, keepdims=True), wb.shape)] = 0.0
+        per_sub = cap.measure / n_sub.reshape(-1, 1, 1, 1).astype(np.float32)
+        wb[bin_may_clip(per_sub, rig)] = 0.0
         yb = yb.reshape(nb * h * w, c)
         wb = wb.reshape(nb * h * w, c)
         for b in range(nb):
