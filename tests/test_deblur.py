@@ -196,7 +196,7 @@ def test_fuse_still_runs_at_full_resolution_only(monkeypatch):
     # (a whole-frame pass over the VET image and every bin) on the benchmark's path.
     seen.clear()
     img, _ = deblur(_capture("translate:30,0", 128, 96), "vet", motion_init="truth")
-    assert seen == [] and img.meta["still_pixels"] == "fused"
+    assert seen == [] and img.meta["still_pixels"] == "none"
 
 
 def test_deblur_with_true_motion_beats_hdr_static_in_the_dark():

@@ -19,9 +19,9 @@ the measuring images with conjugate gradients, coarse to fine (2x2 blocks first)
 robust at occlusions; pixels whose integration path does not move take the value of
 all their data (I and the measuring images) when anything moves, and hdr-static's when
 nothing does (a still capture comes out as hdr-static; --fuse-still and --keep-still
-choose one always); --method paper reproduces the published method (least squares on I, Laplacian and
-histogram-intersection priors, steepest descent). --motion-init truth uses the
-simulator's true motion: an oracle for research.
+choose one always); --method paper reproduces the published method (least squares on
+I, Laplacian and histogram-intersection priors, steepest descent). --motion-init truth
+uses the simulator's true motion: an oracle for research.
 Output is float32 EXR in the units of hdr-static, with its mask and T.
 
 \b

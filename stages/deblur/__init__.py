@@ -133,7 +133,8 @@ def deblur(
         comes out as hdr-static). ``True``: always the fused value (``vet deblur
         --fuse-still``); ``False``: always hdr-static's (``--keep-still``). In ``vet
         batch``: ``--param deblur.fuse_still=true|false|auto``. The image's metadata
-        ``still_pixels`` says which they took (``fused`` or ``hdr-static``).
+        ``still_pixels`` says which they took (``fused`` or ``hdr-static``; ``none``
+        where every pixel moves).
 
     Returns
     -------
@@ -189,7 +190,7 @@ def deblur(
         )
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}
-        extra = {"still_pixels": "fused" if report["still_fused"] else "hdr-static"}
+        extra = {"still_pixels": report["still_pixels"]}
     else:
         from .paper import PaperOptions, deblur_paper
 

@@ -433,9 +433,10 @@ def deblur_joint(
     still : ndarray of shape (H, W), bool, optional
         Pixels known to be still (their velocity stays zero through the motion steps).
     report : dict, optional
-        Filled with ``still_fused``: whether the pixels no moving path touches were
-        given the value of all their data (:func:`fuse_still`; see
-        ``JointOptions.fuse_still``).
+        Filled with ``still_pixels``: what the pixels no moving path touches took,
+        ``fused`` (the value of all their data, :func:`fuse_still`; see
+        ``JointOptions.fuse_still``), ``hdr-static``, or ``none`` where every pixel
+        moves (a global motion).
 
     Returns
     -------
@@ -449,7 +450,7 @@ def deblur_joint(
     n = h * wd
     start = None
     if report is not None:
-        report["still_fused"] = False
+        report["still_pixels"] = "hdr-static"
     if opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0):
         start = _coarse_start(
             obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts
@@ -491,7 +492,9 @@ def deblur_joint(
             if fusing and fuse.any():  # (a global motion leaves no pixel to fuse)
                 L[fuse] = np.maximum(fuse_still(obs, A, Ab, data_diag, fuse, L[fuse]), floor[fuse])
             if report is not None:
-                report["still_fused"] = bool(fusing)
+                report["still_pixels"] = (
+                    "fused" if fusing and fuse.any() else "hdr-static" if not free.all() else "none"
+                )
         if not free.any():
             log.debug("deblur: no pixel's integration path moves; the result is hdr-static")
             break

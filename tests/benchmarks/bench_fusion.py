@@ -165,6 +165,9 @@ def cannon_object() -> dict | None:
             row[name] = {"rms": err["all"]["rms"], "n": err["all"]["n"], "scale": err["scale"]}
         out[gname] = row
         k, f = row["--keep-still"], row["default (fused)"]
+        if k["n"] == 0:
+            print(f"  {gname:19s} n={0:7d}  (no still pixel with this exposure time)", flush=True)
+            continue
         print(
             f"  {gname:19s} n={k['n']:7d}  RMS --keep-still {k['rms']:.4f}, default {f['rms']:.4f};"
             f" scale {k['scale']:.4f}, {f['scale']:.4f}",
