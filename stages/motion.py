@@ -15,6 +15,13 @@ Specs
     own pixels, like sliding a print of that region over the picture).
 ``rotate:DEG_PER_S[,CX,CY]``
     The scene rotates about ``(CX, CY)`` (default: the centre), degrees per second.
+``field:PATH``
+    A dense velocity field from a motion file (``kind: motion``, layer ``motion`` with
+    channels ``u, v`` in px/s, as ``vet deblur --motion-out`` writes), constant in time:
+    ``D(x, t) = v(x) t``, the model deblur reconstructs with. The image at ``t`` is pulled
+    back along the field, so there is no occlusion: where two paths meet, both show. A
+    field of another size with the scene's aspect ratio is resampled to the scene, its
+    velocities scaled with it (so ``--size`` works); another aspect ratio is an error.
 """
 
 from __future__ import annotations
@@ -167,6 +174,93 @@ class Rotate(Motion):
         return np.stack([-w * (yy - cy), w * (xx - cx)], axis=-1).astype(np.float32)
 
 
+class DenseField(Motion):
+    """A per-pixel velocity field, constant in time (``field:PATH``; module docstring)."""
+
+    def __init__(self, path: str, field: np.ndarray):
+        self.path = path
+        self.field = np.ascontiguousarray(field, dtype=np.float32)
+        self._cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    @property
+    def spec(self) -> str:  # type: ignore[override]
+        return f"field:{self.path}"
+
+    @property
+    def is_still(self) -> bool:
+        return not np.any(self.field)
+
+    def _on(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The field resampled to ``shape`` (H, W) and that grid's pixel coordinates."""
+        hit = self._cache.get(shape)
+        if hit is not None:
+            return hit
+        import cv2
+
+        h, w = shape
+        fh, fw = self.field.shape[:2]
+        if abs((fw / fh) / (w / h) - 1.0) > 0.01:
+            raise InputError(
+                f"motion field {self.path}: {fw}x{fh} does not fit a {w}x{h} scene "
+                "(another aspect ratio)"
+            )
+        field = self.field
+        if (fh, fw) != (h, w):
+            interp = cv2.INTER_AREA if w < fw else cv2.INTER_LINEAR
+            field = cv2.resize(field, (w, h), interpolation=interp)
+            field = field * np.array([w / fw, h / fh], np.float32)
+        gy, gx = np.mgrid[0:h, 0:w].astype(np.float32)
+        hit = (np.ascontiguousarray(field, dtype=np.float32), gx, gy)
+        self._cache[shape] = hit
+        return hit
+
+    def render(self, scene: np.ndarray, t: float) -> np.ndarray:
+        import cv2
+
+        if self.is_still:
+            return scene
+        field, gx, gy = self._on(scene.shape[:2])
+        map_x = gx - field[..., 0] * np.float32(t)
+        map_y = gy - field[..., 1] * np.float32(t)
+        planes = [
+            cv2.remap(
+                np.ascontiguousarray(scene[..., c]),
+                map_x,
+                map_y,
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REFLECT,
+            )
+            for c in range(scene.shape[2])
+        ]
+        return np.stack(planes, axis=-1)
+
+    def velocity(self, shape: tuple[int, int]) -> np.ndarray:
+        return self._on(shape)[0].copy()
+
+
+def load_motion_field(path: str) -> DenseField:
+    """Read a motion file (``kind: motion``) as a :class:`DenseField`; InputError if it
+    is not one or holds non-finite velocities."""
+    from .formats.layered import read_layered
+
+    what = "standard input" if path == "-" else path
+    data = read_layered(path)
+    kind = data.meta.get("kind")
+    if kind != "motion" or "motion" not in data.layers:
+        raise InputError(
+            f"{what}: not a motion field (kind {kind!r}; expected a file written by "
+            "vet deblur --motion-out)"
+        )
+    chans = data.channels["motion"]
+    if sorted(chans) != ["u", "v"]:
+        raise InputError(f"{what}: motion layer has channels {chans}, expected u, v")
+    layer = data.layers["motion"]
+    field = np.stack([layer[..., chans.index("u")], layer[..., chans.index("v")]], axis=-1)
+    if not np.isfinite(field).all():
+        raise InputError(f"{what}: the motion field holds non-finite velocities")
+    return DenseField(path, field)
+
+
 def _floats(text: str, n: int, spec: str) -> list[float]:
     try:
         vals = [float(v) for v in text.split(",")]
@@ -203,6 +297,11 @@ def parse_motion(spec: str | None) -> Motion:
             return Rotate(_floats(rest, 1, spec)[0])
         d, cx, cy = _floats(rest, 3, spec)
         return Rotate(d, cx, cy)
+    if kind == "field":
+        if not rest:
+            raise InputError(f"invalid motion {spec!r}: field:PATH needs a motion file")
+        return load_motion_field(rest)
     raise InputError(
-        f"invalid motion {spec!r}: use none, translate:VX,VY, object:X,Y,W,H:VX,VY or rotate:DEG_PER_S[,CX,CY]"
+        f"invalid motion {spec!r}: use none, translate:VX,VY, object:X,Y,W,H:VX,VY,"
+        " rotate:DEG_PER_S[,CX,CY] or field:PATH"
     )

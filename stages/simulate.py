@@ -119,6 +119,8 @@ def simulate(
     tail_s = tf - k_sub * tau
     dark = rig.dark_current_e_s
     exposure_stream, subframe_stream = noise_streams(seed)
+    # First, so that a motion that does not fit the scene fails before the render.
+    truth_motion = motion.velocity((h, w))
 
     want = set(methods)
     shape = (h, w, nch)
@@ -185,7 +187,6 @@ def simulate(
         "seed": int(seed),
     }
     truth = radiance.astype(np.float32)
-    truth_motion = motion.velocity((h, w))
     common = dict(channels=list(scene.channels), rig=rig, truth=truth, truth_motion=truth_motion)
 
     def meta_for(method: str, integration_s: float, leakage_applies: bool) -> dict[str, Any]:

@@ -22,7 +22,8 @@ from the same scene, motion and noise.
 
 \b
 Motion SPEC: none | translate:VX,VY | object:X,Y,W,H:VX,VY | rotate:DEG_PER_S[,CX,CY]
-(pixels or degrees per second).
+(pixels or degrees per second) | field:PATH (a motion file, as vet deblur --motion-out
+writes: velocity per pixel in px/s, constant in time).
 
 \b
 Example:
