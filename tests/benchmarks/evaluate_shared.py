@@ -12,8 +12,11 @@ pixels, and GoldenGate's central rectangle holds none.
 Run: python -m tests.benchmarks.evaluate_shared OUT_DIR [--size-scale F]
 [--reach-subframes N] [SCENE ...] (`make evaluate-shared` writes eval_out/ at DESIGN.md's
 radiance scale, N = 1; a larger N dims every scene alike, as `vet evaluate
---reach-subframes N` does; the rectangles stay where they are at N = 1). Skips cleanly
-when ../shared is absent.
+--reach-subframes N` does; the rectangles stay where they are at N = 1). It ends with the
+number of runs on which each acceptance point holds, over all runs and over the set of
+translate plus the object on dark content. ``--summary-only`` prints the tables from the
+results.csv files a finished run left in OUT_DIR (give it that run's options) without
+running anything. Skips cleanly when ../shared is absent.
 """
 
 from __future__ import annotations
