@@ -4,7 +4,8 @@ Two methods share the forward model of :mod:`stages.deblur.operator`:
 
 ``vet`` (default, :mod:`stages.deblur.joint`)
     Layered motion (still background and translating layers, with occlusion) estimated
-    from all the measuring bins (:mod:`stages.deblur.layers`); noise-weighted
+    from all the measuring bins (:mod:`stages.deblur.layers`), or dense flow where the
+    motion is not layered (a rotation, a zoom: the layers' model check); noise-weighted
     (Poisson-Gaussian) misfit on the VET image and the measuring bins, conjugate-gradient
     image solves with iteratively reweighted robust weights, an edge-preserving relative
     prior; only pixels whose integration path moves are re-estimated, the rest keep
@@ -49,11 +50,20 @@ def output_to_rate(cap: Capture, radiance: np.ndarray) -> np.ndarray:
 
 
 def initial_motion(cap: Capture, motion_init: str) -> np.ndarray:
-    """Start velocity field (H, W, 2) px/s.
+    """Start velocity field (H, W, 2) px/s (:func:`start_motion` without its model)."""
+    return start_motion(cap, motion_init)[0]
+
+
+def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
+    """Start velocity field (H, W, 2) px/s, and the motion model it follows.
 
     ``layers``: the layered estimate of :mod:`stages.deblur.layers` (a still background
     and rigidly translating layers, from long-baseline flow pooled over all measuring
-    bins); ``farneback``/``dis``: dense flow between bins (:func:`stages.flow.estimate_velocity`);
+    bins; model ``layers``), unless its model check finds that a dense field explains
+    the bins clearly better (a rotation, a zoom, a non-rigid motion:
+    :func:`stages.deblur.layers.layered_model_check`), in which case the ``dis`` start
+    (model ``dense``); ``farneback``/``dis``: dense flow between bins
+    (:func:`stages.flow.estimate_velocity`; model ``dense``);
     ``truth``: the simulator's true motion; ``zero``: none. Flow-based starts are zero when
     the measuring bins pass the still-scene test of :func:`stages.flow.moving_mask`. The
     layered estimate is not gated by that test: it has its own guards against inventing
@@ -66,9 +76,9 @@ def initial_motion(cap: Capture, motion_init: str) -> np.ndarray:
     if motion_init == "truth":
         if cap.truth_motion is None:
             raise InputError("--motion-init truth needs a simulated capture with its true motion")
-        return cap.truth_motion.astype(np.float32)
+        return cap.truth_motion.astype(np.float32), "truth"
     if motion_init == "zero":
-        return np.zeros((*cap.shape, 2), np.float32)
+        return np.zeros((*cap.shape, 2), np.float32), "zero"
     if motion_init not in ("layers", "farneback", "dis"):
         raise InputError(
             f"unknown motion initialisation {motion_init!r}; choose from {', '.join(MOTION_INITS)}"
@@ -76,13 +86,21 @@ def initial_motion(cap: Capture, motion_init: str) -> np.ndarray:
     if motion_init == "layers":
         from .layers import estimate_layers
 
-        return estimate_layers(cap).velocity
+        est = estimate_layers(cap)
+        if est.check is None or est.check.fits:
+            return est.velocity, "layers"
+        log.info(
+            "deblur: the motion is not layered (a dense field explains %.0f%% of what the"
+            " layers miss); starting from dense flow",
+            100 * est.check.missed_share,
+        )
+        motion_init = "dis"
     from ..flow import estimate_velocity, moving_mask
 
     if moving_mask(cap).mean() < 0.01:  # the bins agree with a still scene: no motion to find
-        return np.zeros((*cap.shape, 2), np.float32)
+        return np.zeros((*cap.shape, 2), np.float32), "dense"
     vel, _conf = estimate_velocity(cap, motion_init)
-    return suppress_small_motion(vel)
+    return suppress_small_motion(vel), "dense"
 
 
 #: Speeds below this (px/s; under two pixels of travel in a 1 s frame) are flow noise
@@ -158,7 +176,7 @@ def deblur(
     t_start = time.perf_counter()
     static = hdr_static(cap)
     L_init = output_to_rate(cap, static.radiance).astype(np.float32)
-    vel0 = initial_motion(cap, motion_init)
+    vel0, motion_model = start_motion(cap, motion_init)
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
     # Pixels saturated in the VET image and in the first bin: only a lower bound is known.
@@ -214,6 +232,7 @@ def deblur(
     meta.update(
         method=name,
         motion_init=motion_init,
+        motion_model=motion_model,
         runtime_s=round(time.perf_counter() - t_start, 3),
         provenance=list(cap.meta.get("provenance", []))
         + [provenance_entry("deblur", method=method, motion_init=motion_init, **params)],
