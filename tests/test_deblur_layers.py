@@ -339,16 +339,20 @@ def test_the_model_check_rejects_only_motions_that_are_not_layered(motion, fits)
 
 def test_deblur_of_a_rotation_starts_from_dense_flow_and_beats_hdr_static():
     # The layered start of a rotation is the one translation that fits best; deblurring
-    # along it was worse than not deblurring (dark RMS 0.709 stops against hdr-static's
-    # 0.633). The model check hands the start to dense flow: 0.508.
+    # along it was worse than not deblurring (dark RMS over the pixels vet evaluate
+    # scores: 0.709 stops against hdr-static's 0.633). The model check hands the start
+    # to dense flow: 0.508.
+    from stages.metrics import measurable_floor
+
     cap = _vet(builtin_interior(160, 128), "rotate:6", seed=0)
     img, vel = deblur(cap)
     assert img.meta["motion_model"] == "dense" and img.meta["motion_init"] == "layers"
     rig = cap.rig
+    floor = measurable_floor(rig, cap.radiance_scale)
 
     def dark_rms(radiance):
-        return stops_error(radiance, cap.truth, cap.T, rig.frame_s)["dark"]["rms"]
+        return stops_error(radiance, cap.truth, cap.T, rig.frame_s, floor=floor)["dark"]["rms"]
 
-    assert dark_rms(img.radiance) < 0.9 * dark_rms(hdr_static(cap).radiance)
+    assert dark_rms(img.radiance) < 0.85 * dark_rms(hdr_static(cap).radiance)
     speeds = np.hypot(vel[..., 0], vel[..., 1])
     assert np.percentile(speeds, 90) > 5.0 and len(np.unique(vel.reshape(-1, 2), axis=0)) > 100
