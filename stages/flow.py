@@ -185,20 +185,38 @@ def estimate_velocity(
     conf *= valid.all(axis=0)
     conf = conf.astype(np.float32)
     if smooth_px > 0:
-        num = np.stack(
-            [cv2.GaussianBlur(vel[..., k] * conf, (0, 0), smooth_px) for k in range(2)], -1
-        )
-        den = cv2.GaussianBlur(conf, (0, 0), smooth_px)[..., None]
         # Where no confident pixel is near, fall back to the global median velocity.
         glob = (
             np.median(vel[conf > np.percentile(conf, 50)], axis=0)
             if conf.max() > 0
             else np.zeros(2)
         )
-        vel = np.where(den > 1e-3, num / np.maximum(den, 1e-12), glob[None, None, :]).astype(
-            np.float32
-        )
+        vel = smooth_by_confidence(vel, conf, smooth_px, fallback=glob)
     return vel.astype(np.float32), np.clip(conf, 0, 1)
+
+
+def smooth_by_confidence(
+    velocity: np.ndarray,
+    confidence: np.ndarray,
+    sigma_px: float,
+    fallback: np.ndarray | tuple[float, float] = (0.0, 0.0),
+    min_weight: float = 1e-3,
+) -> np.ndarray:
+    """Confidence-weighted Gaussian smoothing of a velocity field (H, W, 2).
+
+    Each pixel takes the mean of its neighbours' velocities (Gaussian of ``sigma_px``)
+    weighted by their ``confidence`` (H, W); where the summed weight is below
+    ``min_weight`` (no confident pixel near), it takes ``fallback``.
+    """
+    import cv2
+
+    conf = confidence.astype(np.float32)
+    num = np.stack(
+        [cv2.GaussianBlur(velocity[..., k] * conf, (0, 0), sigma_px) for k in range(2)], -1
+    )
+    den = cv2.GaussianBlur(conf, (0, 0), sigma_px)[..., None]
+    fill = np.asarray(fallback, np.float32)[None, None, :]
+    return np.where(den > min_weight, num / np.maximum(den, 1e-12), fill).astype(np.float32)
 
 
 def write_motion(path: str, velocity: np.ndarray, meta: dict | None = None) -> None:

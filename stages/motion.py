@@ -222,17 +222,9 @@ class DenseField(Motion):
         field, gx, gy = self._on(scene.shape[:2])
         map_x = gx - field[..., 0] * np.float32(t)
         map_y = gy - field[..., 1] * np.float32(t)
-        planes = [
-            cv2.remap(
-                np.ascontiguousarray(scene[..., c]),
-                map_x,
-                map_y,
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_REFLECT,
-            )
-            for c in range(scene.shape[2])
-        ]
-        return np.stack(planes, axis=-1)
+        # Scenes have 1 or 3 channels: one remap call (OpenCV takes up to 4).
+        out = cv2.remap(scene, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        return out.reshape(scene.shape)
 
     def velocity(self, shape: tuple[int, int]) -> np.ndarray:
         return self._on(shape)[0].copy()

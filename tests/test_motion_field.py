@@ -117,20 +117,8 @@ def test_deblur_motion_out_drives_simulate(tmp_path):
     from stages.formats import read_capture, read_layered
 
     cap, motion = tmp_path / "cap.exr", tmp_path / "m.exr"
-    assert (
-        run_vet(
-            "-q",
-            "simulate",
-            "builtin:chart",
-            "--size",
-            "48x40",
-            "--motion",
-            "translate:20,0",
-            "-o",
-            str(cap),
-        ).returncode
-        == 0
-    )
+    simulate_args = "-q simulate builtin:chart --size 48x40 --motion translate:20,0 -o".split()
+    assert run_vet(*simulate_args, str(cap)).returncode == 0
     res = run_vet(
         "-q", "deblur", str(cap), "-o", str(tmp_path / "d.exr"), "--motion-out", str(motion)
     )

@@ -560,31 +560,26 @@ def _kept_layers(label: np.ndarray, vels: np.ndarray) -> tuple[np.ndarray, np.nd
 def _visible(label: np.ndarray, vels: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """Per bin, whether each scene point of t = 0 is in front at its position, (B, H, W).
 
-    The layers are ordered as the blur operator orders them
-    (:func:`stages.deblur.operator.motion_layers`): the layer with the most points is
-    the background, the others lie in front of it, smaller in front of larger. A point
-    of layer ``k`` is at ``y + v_k c_b`` in bin ``b`` and is seen there unless a layer
-    in front of ``k`` covers that pixel then.
+    The blur operator's own reading of the layers decides
+    (:func:`stages.deblur.operator.motion_layers`, whose front-most covering layer a
+    pixel sees): the point ``y`` of layer ``k`` is at the pixel ``x = y + v_k c_b`` in
+    bin ``b`` and is seen there if that pixel then shows ``y``, not a point of a layer
+    in front of it.
     """
+    from .operator import _layered_positions, motion_layers
+
     h, w = label.shape
-    counts = np.bincount(label.ravel(), minlength=len(vels))
-    background = int(np.argmax(counts))
-    front = [int(k) for k in np.argsort(counts, kind="stable") if k != background and counts[k]]
-    depth = np.full(len(vels), len(vels), np.int64)  # 0 front-most; the background last
-    depth[front + [background]] = np.arange(len(front) + 1)
-    yy, xx = np.mgrid[0:h, 0:w]
+    field = np.asarray(vels, np.float32)[label]
     vis = np.ones((len(centres), h, w), bool)
+    layers = motion_layers(field)
+    if layers is None or not layers.front:  # one layer: nothing hides anything
+        return vis
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     for b, c in enumerate(centres):
-        shown = np.full((h, w), background, np.int64)
-        for k in reversed(front):  # back to front: nearer layers overwrite
-            sx = np.rint(xx - vels[k][0] * c).astype(np.int64)
-            sy = np.rint(yy - vels[k][1] * c).astype(np.int64)
-            inside = (sx >= 0) & (sx < w) & (sy >= 0) & (sy < h)
-            hit = inside & (label[np.clip(sy, 0, h - 1), np.clip(sx, 0, w - 1)] == k)
-            shown[hit] = k
-        px = np.clip(np.rint(xx + vels[label][..., 0] * c).astype(np.int64), 0, w - 1)
-        py = np.clip(np.rint(yy + vels[label][..., 1] * c).astype(np.int64), 0, h - 1)
-        vis[b] = depth[shown[py, px]] >= depth[label]
+        px = np.rint(xx + field[..., 0] * c)
+        py = np.rint(yy + field[..., 1] * c)
+        sx, sy = _layered_positions(layers, px, py, np.full((h, w), float(c)), h, w)
+        vis[b] = (np.abs(sx - xx) <= 0.5 + 1e-6) & (np.abs(sy - yy) <= 0.5 + 1e-6)
     return vis
 
 
@@ -621,16 +616,11 @@ def layered_model_check(
     ``label`` (H, W) and ``vels`` (K, 2) are the layers, ``dense`` an (H, W, 2) field and
     ``conf`` (H, W) weights, all on the grid of ``lv``.
     """
-    import cv2
+    from ..flow import smooth_by_confidence
 
     vels = np.asarray(vels, np.float32)
     layered = vels[label]
-
-    num = np.stack(
-        [cv2.GaussianBlur(dense[..., k] * conf, (0, 0), DENSE_SMOOTH_PX) for k in (0, 1)], -1
-    )
-    den = cv2.GaussianBlur(conf, (0, 0), DENSE_SMOOTH_PX)[..., None]
-    smooth = np.where(den > 1e-6, num / np.maximum(den, 1e-12), 0.0).astype(np.float32)
+    smooth = smooth_by_confidence(dense, conf, DENSE_SMOOTH_PX, min_weight=1e-6)
     reach = max(float(np.abs(layered).max()), float(np.abs(smooth).max())) * float(np.max(centres))
     band = int(np.ceil(reach)) + 2
     wt = np.zeros_like(conf, dtype=np.float64)

@@ -94,8 +94,7 @@ def run_evaluate(
         print(f"{run}: FAILED: {why}", flush=True)
         return None
     print(f"{run}: {time.perf_counter() - t0:.0f} s", flush=True)
-    with open(folder / "results.csv") as f:
-        return {r["method"]: r for r in csv.DictReader(f)}
+    return read_results(folder)
 
 
 def main(argv: list[str]) -> int:
