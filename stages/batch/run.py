@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
-from ..errors import InputError, VetError
+from ..cluster import CONNECT_TIMEOUT_S, dask_client
+from ..errors import InputError
 from ..formats.io import atomic_output
 from .discover import CaptureUnit, discover_captures, output_stems
 from .manifest import (
@@ -36,7 +37,7 @@ from .manifest import (
     step_key,
 )
 from .steps import STEPS, check_available, parse_steps, resolve_params
-from .worker import WORKER_ENV, CaptureJob, CaptureResult, StepCall, process_capture
+from .worker import CaptureJob, CaptureResult, StepCall, process_capture
 
 log = logging.getLogger("vet.batch")
 
@@ -45,8 +46,6 @@ SUMMARY_NAME = "batch-summary.json"
 EXIT_OK = 0
 #: Exit status when the run completed but some captures failed (see the summary).
 EXIT_SOME_FAILED = 3
-#: Seconds to wait for an existing cluster's scheduler, then for its first worker.
-CONNECT_TIMEOUT_S = 30.0
 
 EventHandler = Callable[[str, dict[str, Any]], None]
 
@@ -208,80 +207,30 @@ def _lost(job: CaptureJob, exc: BaseException) -> CaptureResult:
     return CaptureResult(rel=job.rel, failure={"step": step, "reason": reason, "key": None})
 
 
-def _quiet_dask_logs() -> None:
-    """Keep Dask's and asyncio's chatter (INFO and DEBUG) out of vet's ``-v`` output."""
-    names = ["distributed", "asyncio", "tornado", "bokeh"]
-    names += [n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]
-    for name in names:
-        logger = logging.getLogger(name)
-        if logger.getEffectiveLevel() < logging.WARNING:
-            logger.setLevel(logging.WARNING)
-
-
 def _results_dask(
     jobs: list[CaptureJob], n_workers: int, scheduler: str | None, info: dict[str, Any]
 ) -> Iterator[list[CaptureResult]]:
     """Run jobs on Dask; yield the results of each burst of completions."""
     import distributed
 
-    _quiet_dask_logs()
-    t0 = time.monotonic()
-    cluster = None
-    try:
-        if scheduler:
-            try:
-                client = distributed.Client(
-                    scheduler, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False
-                )
-            except (OSError, TimeoutError) as exc:
-                raise VetError(f"cannot reach the Dask scheduler at {scheduler} ({exc})") from None
-            try:
-                client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
-            except (TimeoutError, OSError):
-                client.close()
-                raise VetError(
-                    f"no Dask worker joined the scheduler at {scheduler} within "
-                    f"{CONNECT_TIMEOUT_S:.0f} s"
-                ) from None
-            info["executor"] = f"dask scheduler {scheduler}"
-        else:
-            cluster = distributed.LocalCluster(
-                n_workers=n_workers,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                dashboard_address=None,
-                worker_dashboard_address=None,
-                env=dict(WORKER_ENV),
-                silence_logs=logging.WARNING,
-            )
-            client = distributed.Client(cluster, set_as_default=False)
-            info["executor"] = f"dask LocalCluster, {n_workers} worker processes on 127.0.0.1"
-        info["workers"] = len(client.scheduler_info().get("workers", {}))
-        info["startup_s"] = round(time.monotonic() - t0, 3)
+    with dask_client(n_workers, scheduler, info, timeout_s=CONNECT_TIMEOUT_S) as client:
         info["process_started"] = time.monotonic()
-        try:
-            by_key = {}
-            futures = []
-            for job in jobs:
-                fut = client.submit(process_capture, job, pure=False)
-                by_key[fut.key] = job
-                futures.append(fut)
-            for burst in distributed.as_completed(futures, loop=client.loop).batches():
-                out: list[CaptureResult] = []
-                for fut in burst:
-                    job = by_key[fut.key]
-                    try:
-                        out.append(fut.result())
-                    except Exception as exc:  # KilledWorker, CancelledError, unpicklable...
-                        out.append(_lost(job, exc))
-                    fut.release()
-                yield out
-        finally:
-            client.close()
-    finally:
-        if cluster is not None:
-            cluster.close()
+        by_key = {}
+        futures = []
+        for job in jobs:
+            fut = client.submit(process_capture, job, pure=False)
+            by_key[fut.key] = job
+            futures.append(fut)
+        for burst in distributed.as_completed(futures, loop=client.loop).batches():
+            out: list[CaptureResult] = []
+            for fut in burst:
+                job = by_key[fut.key]
+                try:
+                    out.append(fut.result())
+                except Exception as exc:  # KilledWorker, CancelledError, unpicklable...
+                    out.append(_lost(job, exc))
+                fut.release()
+            yield out
 
 
 def run_batch(
