@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from .calfile import Calibration
-from .frames import CalibrationFrames, ProgressFn, _software, calibrate_frames
+from .frames import CalibrationFrames, ProgressFn, calibrate_frames, software_version
 from .gray_code import gray_code_patterns
 
 log = logging.getLogger("vet.calibrate")
@@ -232,7 +232,7 @@ def calibrate_rig(
             "meas_flat": sorted(frames.meas_flat),
         },
         "frames_averaged": frames.counts,
-        "software": _software(),
+        "software": software_version(),
     }
     cal = calibrate_frames(frames, rig.params, prov)
     cal.provenance["elapsed_s"] = round(time.monotonic() - t0, 3)

@@ -63,6 +63,7 @@ class CalibrationFrames:
     counts: dict[str, int] = field(default_factory=dict)
 
     def shape(self) -> tuple[int, int] | None:
+        """(H, W) of the frames held, or None when there are none."""
         for group in (self.dark, self.open, self.closed, self.meas_flat):
             for v in group.values():
                 return v.shape
@@ -207,7 +208,8 @@ def calibrate_frames(
     return cal
 
 
-def _software() -> str:
+def software_version() -> str:
+    """``"vet <version>"`` as installed, or ``"vet (uninstalled)"`` (provenance)."""
     try:
         from importlib.metadata import version
 

@@ -6,7 +6,7 @@ fitted variable), RANSAC on a sample, then least squares on all inliers, and inv
 
 References
 ----------
-.. [3] Hartley, R., Zisserman, A. (2004). Multiple View Geometry, 2nd ed., ch. 4
+.. [1] Hartley, R., Zisserman, A. (2004). Multiple View Geometry, 2nd ed., ch. 4
    (homography estimation, RANSAC).
 """
 

@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..rig import RigParams
 from .calfile import Calibration
-from .frames import CalibrationFrames, ProgressFn, _software, calibrate_frames
+from .frames import CalibrationFrames, ProgressFn, calibrate_frames, software_version
 from .gray_code import gray_bit_counts
 
 log = logging.getLogger("vet.calibrate")
@@ -166,7 +166,11 @@ def calibrate_from_folder(
             "calibrate: frames are %dx%d; using that as the sensor size", shape[0][1], shape[0][0]
         )
         params = params.replace(sensor_size=(shape[0][1], shape[0][0]), homography=[])
-    prov = {"source": f"folder:{root}", "frames_averaged": frames.counts, "software": _software()}
+    prov = {
+        "source": f"folder:{root}",
+        "frames_averaged": frames.counts,
+        "software": software_version(),
+    }
     return calibrate_frames(frames, params, prov)
 
 
