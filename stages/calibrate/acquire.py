@@ -57,14 +57,17 @@ class _RigExposer:
 
     @staticmethod
     def _mono(img: np.ndarray) -> np.ndarray:
+        """(H, W) float32: colour frames averaged over their channels."""
         a = np.asarray(img, np.float32)
         return a.mean(axis=2) if a.ndim == 3 else a
 
     def vet_fixed_exposure_s(self) -> float:
+        """A real VET camera's exposure, seconds (driver units of 100 us; else the frame)."""
         exp = getattr(self.rig.vet, "exposure", None)
         return float(exp) * 1e-4 if exp else self.rig.params.frame_s  # V4L2 units: 100 us
 
     def meas_fixed_exposure_s(self) -> float:
+        """A real measurement camera's exposure, seconds (else the subframe)."""
         exp = getattr(self.rig.measurement, "exposure", None)
         return float(exp) * 1e-4 if exp else self.rig.params.subframe_s
 
@@ -77,6 +80,11 @@ class _RigExposer:
     def vet(
         self, closed: np.ndarray | None, exposure_s: float, n: int, light: bool = True
     ) -> np.ndarray:
+        """Mean of ``n`` VET frames, (H, W) float32 DN, through ``closed`` (None: all open).
+
+        The emulated camera exposes ``exposure_s`` seconds (``light=False``: a dark frame);
+        a real one keeps its own exposure, and its first frame after a new mask is dropped.
+        """
         acc = None
         for _ in range(n):
             if self.emulated_vet:
@@ -92,6 +100,7 @@ class _RigExposer:
         return (acc / n).astype(np.float32)
 
     def meas(self, n: int) -> np.ndarray:
+        """Mean of ``n`` measurement-camera frames, (H, W) float32 DN."""
         acc = None
         for _ in range(n):
             if self.emulated_meas:

@@ -68,6 +68,7 @@ def open_sim_calibration_rig(
 
 
 def _write_flat_exr(path: str, w: int, h: int) -> None:
+    """Write a ``w`` x ``h`` EXR of ones (channel ``Y``); InputError if it cannot."""
     import OpenImageIO as oiio
 
     spec = oiio.ImageSpec(w, h, 1, "float")

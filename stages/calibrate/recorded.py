@@ -175,6 +175,7 @@ def calibrate_from_folder(
 
 
 def _folder_params(root: Path) -> RigParams:
+    """RigParams from ``root/rig.toml``'s ``[params]`` (defaults without it); InputError if bad."""
     toml = root / "rig.toml"
     if not toml.is_file():
         return RigParams()
