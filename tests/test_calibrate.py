@@ -314,3 +314,43 @@ def test_calibrate_rig_hardware_path_with_fake_devices(caplog):
     assert any("lens capped" in r.getMessage() for r in caplog.records)
     assert rig.lcos.sent == 2 + 2 * sum(c.gray_bit_counts((40, 24))) + 1
     assert not rig.lcos.mask.any()  # left all open
+
+
+def test_calibrate_rig_with_software_triggered_genicam_style_cameras():
+    """GenICam cameras state exposure_us (read back, maybe rounded, in describe()) and, with
+    trigger = "software", deliver a frame only after start_exposure()."""
+    from stages.devices.cameras import Camera
+    from stages.errors import DeviceError
+
+    rig, hom = _fake_hardware_rig()
+
+    class SoftwareTriggered(Camera):
+        def __init__(self, inner, exposure_us, read_back_us):
+            super().__init__()
+            self.inner, self.exposure_us, self.read_back_us = inner, exposure_us, read_back_us
+            self.armed = False
+
+        def _do_open(self):
+            pass
+
+        def describe(self):
+            return {"backend": "genicam", "exposure_us": self.read_back_us}
+
+        def start_exposure(self):
+            self.armed = True
+
+        def _do_grab(self):
+            if not self.armed:
+                raise DeviceError("no frame: the software trigger was not sent")
+            self.armed = False
+            return self.inner.grab()
+
+    # the camera rounds 10 ms to 9.9 ms; the flat levels are per frame, so the exposures
+    # read back (9.9 ms VET, 5 ms measurement) set the gain ratio: (500 / 5) / (2000 / 9.9)
+    rig.vet = SoftwareTriggered(rig.vet, 10_000.0, 9_900.0)
+    rig.measurement = SoftwareTriggered(rig.measurement, 5_000.0, 5_000.0)
+    cal = c.calibrate_rig(rig, settings=c.AcquisitionSettings(frames_per_exposure=2))
+    mx, _ = c.homography_error_px(cal.homography, hom, (40, 24), (64, 48))
+    assert mx <= 0.5
+    assert cal.summary["gain_ratio_median"] == pytest.approx(0.495, rel=1e-3)
+    assert cal.provenance["exposures_s"]["open"] == [pytest.approx(9.9e-3)]

@@ -61,15 +61,34 @@ class _RigExposer:
         a = np.asarray(img, np.float32)
         return a.mean(axis=2) if a.ndim == 3 else a
 
+    @staticmethod
+    def _fixed_exposure_s(cam: Any, default_s: float) -> float:
+        """A real camera's own exposure, seconds.
+
+        A GenICam camera's ``exposure_us`` as it reads it back (``describe()``; cameras
+        round), else as asked; a V4L2 camera's ``exposure`` in driver units of 100 us;
+        else ``default_s``.
+        """
+        cam.open()
+        us = cam.describe().get("exposure_us") or getattr(cam, "exposure_us", None)
+        if us:
+            return float(us) * 1e-6
+        exp = getattr(cam, "exposure", None)
+        return float(exp) * 1e-4 if exp else default_s
+
     def vet_fixed_exposure_s(self) -> float:
-        """A real VET camera's exposure, seconds (driver units of 100 us; else the frame)."""
-        exp = getattr(self.rig.vet, "exposure", None)
-        return float(exp) * 1e-4 if exp else self.rig.params.frame_s  # V4L2 units: 100 us
+        """A real VET camera's exposure, seconds (else the frame length)."""
+        return self._fixed_exposure_s(self.rig.vet, self.rig.params.frame_s)
 
     def meas_fixed_exposure_s(self) -> float:
-        """A real measurement camera's exposure, seconds (else the subframe)."""
-        exp = getattr(self.rig.measurement, "exposure", None)
-        return float(exp) * 1e-4 if exp else self.rig.params.subframe_s
+        """A real measurement camera's exposure, seconds (else the subframe length)."""
+        return self._fixed_exposure_s(self.rig.measurement, self.rig.params.subframe_s)
+
+    @staticmethod
+    def _grab(cam: Any) -> np.ndarray:
+        """One frame of a real camera; a host-triggered one is started first."""
+        cam.start_exposure()
+        return cam.grab().data
 
     def show(self, closed: np.ndarray | None) -> None:
         """Put a mask on the LCoS (None: all open) and wait for the device to apply it."""
@@ -92,9 +111,9 @@ class _RigExposer:
                 img = self.rig.vet.expose_pattern(open_cells, exposure_s, light=light)
             else:
                 if self._stale:
-                    self.rig.vet.grab()
+                    self._grab(self.rig.vet)
                     self._stale = False
-                img = self.rig.vet.grab().data
+                img = self._grab(self.rig.vet)
             img = self._mono(img)
             acc = img.astype(np.float64) if acc is None else acc + img
         return (acc / n).astype(np.float32)
@@ -109,7 +128,7 @@ class _RigExposer:
                 )
                 self._meas_k += 1
             else:
-                img = self.rig.measurement.grab().data
+                img = self._grab(self.rig.measurement)
             img = self._mono(img)
             acc = img.astype(np.float64) if acc is None else acc + img
         return (acc / n).astype(np.float32)
