@@ -7,8 +7,8 @@ The capture loop and calibration drive any rig through this one interface.
 Rig file (TOML) for real hardware::
 
     [params]                      # optional RigParams overrides (DESIGN.md §2 defaults)
-    frame_s = 0.99975
-    subframe_s = 0.00758
+    lcos_cells = [1024, 600]
+    sensor_size = [1280, 1024]
 
     [lcos]
     url = "/dev/ttyACM0"          # any pyserial URL: /dev/ttyUSB0, socket://host:port, ...
