@@ -225,7 +225,7 @@ def deblur(
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
         radiance, tiling = deblur_in_tiles(
-            cap, vel0, motion_model, opts, tile, workers, scheduler, progress
+            deblur, cap, vel0, motion_model, opts, tile, workers, scheduler, progress
         )
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}

@@ -131,25 +131,25 @@ def crop_capture(cap: Capture, tile: Tile) -> Capture:
 
 
 def deblur_tile(
-    cap: Capture, velocity: np.ndarray, motion_model: str, options: object | None
+    solve: Callable[..., Any],
+    cap: Capture,
+    velocity: np.ndarray,
+    motion_model: str,
+    options: object | None,
 ) -> tuple[np.ndarray, str]:
-    """One tile deblurred with a given motion: (radiance (H, W, C) in output units, what
-    its still pixels took)."""
-    from . import deblur
-
-    img, _vel = deblur(
+    """One tile deblurred by ``solve`` (:func:`stages.deblur.deblur`) with a given motion:
+    (radiance (H, W, C) in output units, what its still pixels took)."""
+    img, _vel = solve(
         cap, method="vet", motion=velocity, motion_model=motion_model, options=options
     )
     return img.radiance, str(img.meta.get("still_pixels", ""))
 
 
-def _deblur_tile_on_worker(
-    cap: Capture, velocity: np.ndarray, motion_model: str, options: object | None
-) -> tuple[np.ndarray, str]:
+def _deblur_tile_on_worker(*args: Any) -> tuple[np.ndarray, str]:
     from ..cluster import limit_threads
 
     limit_threads()  # N workers mean N cores, on an embedded or an external cluster
-    return deblur_tile(cap, velocity, motion_model, options)
+    return deblur_tile(*args)
 
 
 def _tile_jobs(
@@ -161,6 +161,7 @@ def _tile_jobs(
 
 
 def deblur_in_tiles(
+    solve: Callable[..., Any],
     cap: Capture,
     velocity: np.ndarray,
     motion_model: str,
@@ -170,7 +171,8 @@ def deblur_in_tiles(
     scheduler: str | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Deblur ``cap`` tile by tile with the whole frame's ``velocity`` (H, W, 2) px/s.
+    """Deblur ``cap`` tile by tile with the whole frame's ``velocity`` (H, W, 2) px/s,
+    each tile by ``solve`` (:func:`stages.deblur.deblur`, passed in by its caller).
 
     Returns the blended radiance (H, W, C) in output units and a record ``{"size",
     "halo_px", "count", "executor", "workers", "still_pixels"}``.
@@ -184,6 +186,7 @@ def deblur_in_tiles(
     info: dict[str, Any] = {}
     still: set[str] = set()
     for i, (radiance, still_pixels) in _run(
+        solve,
         _tile_jobs(cap, velocity, tiles),
         len(tiles),
         motion_model,
@@ -211,6 +214,7 @@ def deblur_in_tiles(
 
 
 def _run(
+    solve: Callable[..., Any],
     jobs: Iterator[tuple[Capture, np.ndarray]],
     n: int,
     motion_model: str,
@@ -225,7 +229,7 @@ def _run(
     if scheduler is None and workers <= 1:
         info["executor"] = "in-process"
         for i, (cap, vel) in enumerate(jobs):
-            yield i, deblur_tile(cap, vel, motion_model, options)
+            yield i, deblur_tile(solve, cap, vel, motion_model, options)
             if progress:
                 progress(i + 1, n)
         return
@@ -237,7 +241,9 @@ def _run(
         index = {}
         for i, (cap, vel) in enumerate(jobs):
             index[
-                client.submit(_deblur_tile_on_worker, cap, vel, motion_model, options, pure=False)
+                client.submit(
+                    _deblur_tile_on_worker, solve, cap, vel, motion_model, options, pure=False
+                )
             ] = i
         done = 0
         for fut in distributed.as_completed(list(index), loop=client.loop):
