@@ -224,6 +224,7 @@ class FrameLink:
         self._by_seq: dict[int, Outstanding] = {}
         self._rx: collections.deque[Frame] = collections.deque()
         self._last_rx = time.monotonic()
+        self._baseline = self._counts()
         self.closed = False
 
     @staticmethod
@@ -287,11 +288,11 @@ class FrameLink:
 
     def _transmit(self, rec: Outstanding) -> None:
         if rec.transmissions > self.max_retries:
-            problem = rec.last_problem or f"no reply within {self.ack_timeout_s:g} s"
+            problem = rec.last_problem or f"no valid reply within {self.ack_timeout_s:g} s"
             raise DeviceError(
                 f"the LCoS on {self.name} did not acknowledge frame {rec.seq} ({rec.command.name}) "
-                f"after {rec.transmissions} transmissions (last problem: {problem}); "
-                "the link is too noisy or the device stopped responding"
+                f"after {rec.transmissions} transmissions (last problem: {problem}); since its "
+                f"last useful reply the device sent {self.device_behaviour()}"
             )
         if rec.transmissions:
             self._stats.retransmits += 1
@@ -378,14 +379,59 @@ class FrameLink:
             self._commit_cb(rec)
         self._after_rx()
 
-    def _handle(self, frame: Frame) -> None:
+    def _counts(self) -> dict[str, int]:
+        p, s = self._parser, self._stats
+        return {
+            "bytes": s.bytes_received,
+            "skipped": p.skipped_bytes,
+            "bad_crc": p.bad_frames - p.truncated,
+            "truncated": p.truncated,
+            "bad_headers": p.bad_headers,
+            "replays": s.duplicate_acks,
+            "naks": s.naks,
+        }
+
+    def _progress(self) -> None:
+        """A reply that moved the session on: restart the silence timer and the tally."""
         self._last_rx = time.monotonic()
+        self._baseline = self._counts()
+
+    def device_behaviour(self) -> str:
+        """What the device sent since its last useful reply, in words."""
+        now, base = self._counts(), self._baseline
+        d = {k: now[k] - base[k] for k in now}
+        if not d["bytes"]:
+            return "nothing at all"
+        parts = []
+        if d["bad_headers"]:
+            parts.append(
+                f"{d['bad_headers']} impossible frame header(s) "
+                f"(last: {self._parser.last_bad_header})"
+            )
+        if d["bad_crc"]:
+            parts.append(f"{d['bad_crc']} frame(s) with a bad CRC")
+        if d["truncated"]:
+            parts.append(f"{d['truncated']} truncated frame(s)")
+        if d["replays"]:
+            parts.append(
+                f"{d['replays']} replayed acknowledgement(s) of frames already acknowledged"
+            )
+        if d["naks"]:
+            parts.append(f"{d['naks']} NAK(s)")
+        if d["skipped"] and not (d["bad_headers"] or d["bad_crc"] or d["truncated"]):
+            parts.append(f"{d['skipped']} bytes of garbage")
+        elif d["skipped"]:
+            parts.append(f"{d['skipped']} bytes that were not frames in all")
+        return ", ".join(parts) if parts else f"{d['bytes']} bytes that completed no frame"
+
+    def _handle(self, frame: Frame) -> None:
         try:
             if frame.command == Command.NAK:
                 nak = decode_nak(frame.payload)
                 self._stats.naks += 1
                 rec = self._by_seq.get(nak.expected_seq)
                 if rec is not None and rec.ack is None:
+                    self._last_rx = time.monotonic()
                     self._resend_from(rec, f"NAK {nak.reason.name}")
                 return
             if frame.command == Command.INFO_REPLY:
@@ -398,15 +444,21 @@ class FrameLink:
             raise DeviceError(
                 f"the LCoS on {self.name} sent a malformed {frame.command.name}: {exc}"
             ) from exc
+        if (ack.seq - self._seq) & 0xFFFF < 0x8000:
+            raise DeviceError(
+                f"the LCoS on {self.name} acknowledged frame {ack.seq}, which was never sent "
+                f"(the last frame sent was {(self._seq - 1) & 0xFFFF})"
+            )
         rec = self._by_seq.get(ack.seq)
         if rec is None or rec.ack is not None:
-            self._stats.duplicate_acks += 1
+            self._stats.duplicate_acks += 1  # a replay: no progress, the timer runs on
             return
         if (rec.command == Command.INFO) != (info is not None):
             raise DeviceError(
                 f"the LCoS on {self.name} answered frame {rec.seq} ({rec.command.name}) with {frame.command.name}"
             )
         rec.ack, rec.info = ack, info
+        self._progress()
         delay = self._last_rx - rec.first_sent
         self._stats.acks += 1
         self._stats.total_ack_delay_s += delay
@@ -433,7 +485,7 @@ class FrameLink:
             self._rx.extend(self._parser.feed(b""))
             self.process_rx()
             if oldest.ack is None and oldest.seq in self._by_seq:
-                self._resend_from(oldest, f"no reply within {limit:g} s")
+                self._resend_from(oldest, f"no valid reply within {limit:g} s")
 
     def wait(self, done: Callable[[], bool], timeout_s: float | None, what: str) -> None:
         """Service the link until ``done()`` holds.

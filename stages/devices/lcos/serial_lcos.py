@@ -10,6 +10,8 @@ never from when the host asked. Delivery (window, retries, timeouts, serial I/O)
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from ...errors import DeviceError
@@ -25,7 +27,11 @@ from ..protocol import (
 from .device import LCoSDevice
 from .link import FrameLink, LinkStats, Outstanding, SerialLike
 
-__all__ = ["SerialLCoS"]
+__all__ = ["CLOCK_SLACK_SUBFRAMES", "CLOCK_TOLERANCE", "MAX_APPLIED_SUBFRAME", "SerialLCoS"]
+
+MAX_APPLIED_SUBFRAME = 2**31 - 1  #: the T record holds int32 subframe indices
+CLOCK_TOLERANCE = 0.1  #: relative rate error allowed between the device clock and subframe_s
+CLOCK_SLACK_SUBFRAMES = 4  #: subframes of slack on top (trigger jitter, INFO read time)
 
 
 class SerialLCoS(LCoSDevice):
@@ -39,6 +45,14 @@ class SerialLCoS(LCoSDevice):
     committed mask and :attr:`applied_subframe` and compares the ACK's mask CRC with
     the committed mask. On disagreement the driver sends a FULL_MASK of its mirror
     (once; if that FULL_MASK's own ACK still disagrees it raises).
+
+    An acknowledgement is committed only if its applied subframe can be true: the
+    device applies frames in order, so applied subframes never decrease; they fit the
+    31-bit record; and, when ``subframe_s`` is given, none lies beyond what the
+    device's clock can have reached (its INFO reading plus the time since, at
+    ``subframe_s`` per subframe with :data:`CLOCK_TOLERANCE`, plus its latency and
+    :data:`CLOCK_SLACK_SUBFRAMES`). Otherwise :class:`~stages.errors.DeviceError` is
+    raised and nothing of that acknowledgement enters the T record.
 
     Parameters
     ----------
@@ -67,6 +81,14 @@ class SerialLCoS(LCoSDevice):
         Default limit for :meth:`flush` and blocking calls, seconds.
     connect : bool
         Ask the device for INFO now (default) so the grid size is known.
+    cells : (int, int), optional
+        The grid (width, height) the rig expects: an INFO reporting another grid is
+        refused before any per-cell state is allocated.
+    subframe_s : float, optional
+        Subframe length of the device's clock, seconds, when it runs in real time (the
+        camera's trigger): enables the check that applied subframes are not in the
+        future. Leave unset when the clock is advanced by other means (emulators
+        ticked by tests).
 
     Raises
     ------
@@ -88,8 +110,14 @@ class SerialLCoS(LCoSDevice):
         write_timeout_s: float = 10.0,
         flush_timeout_s: float = 30.0,
         connect: bool = True,
+        cells: tuple[int, int] | None = None,
+        subframe_s: float | None = None,
     ) -> None:
         super().__init__()
+        if subframe_s is not None and not subframe_s > 0:
+            raise ValueError(f"subframe_s must be positive, got {subframe_s}.")
+        self.expected_cells = None if cells is None else (int(cells[0]), int(cells[1]))
+        self.subframe_s = subframe_s
         self._link = FrameLink(
             port,
             commit=self._commit,
@@ -111,6 +139,8 @@ class SerialLCoS(LCoSDevice):
         self._applied = np.zeros(0, dtype=np.int32)
         self._frame_start = -1
         self._frame_index = -1
+        self._last_applied = -1  # highest applied subframe committed (INFO aside)
+        self._clock_ref: tuple[int, float] | None = None  # (INFO subframe, host time)
         if connect:
             try:
                 self.info()
@@ -174,6 +204,12 @@ class SerialLCoS(LCoSDevice):
                 f"LCoS on {self.port_name} speaks protocol version {info.protocol_version}, "
                 f"this driver speaks {PROTOCOL_VERSION}"
             )
+        if self.expected_cells is not None and info.cells != self.expected_cells:
+            raise DeviceError(
+                f"the LCoS on {self.port_name} reports {info.cells[0]}x{info.cells[1]} cells "
+                f"but the rig says {self.expected_cells[0]}x{self.expected_cells[1]}"
+            )
+        self._clock_ref = (info.subframe, rec.first_sent)
         if info.n_cells != self._n:
             self._n = info.n_cells
             self._mirror = np.zeros(self._n, dtype=bool)
@@ -230,6 +266,8 @@ class SerialLCoS(LCoSDevice):
         if rec.command == Command.INFO:
             self._info = rec.info
             return
+        self._check_applied(rec, int(ack.applied_subframe))
+        self._last_applied = int(ack.applied_subframe)
         applied = np.int32(ack.applied_subframe)
         if rec.command == Command.OPEN_ALL:
             self._committed[:] = False
@@ -255,6 +293,33 @@ class SerialLCoS(LCoSDevice):
                 )
             if not any(r.resync for r in self._link.pending):
                 self._resync_needed = True
+
+    def _check_applied(self, rec: Outstanding, a: int) -> None:
+        """Refuse an applied subframe the device cannot have reached (see the class)."""
+        what = (
+            f"the LCoS on {self.port_name} reported applying frame {rec.seq} ({rec.command.name})"
+        )
+        if a > MAX_APPLIED_SUBFRAME:
+            raise DeviceError(f"{what} at subframe {a}, beyond any plausible clock value")
+        if a < self._last_applied:
+            raise DeviceError(
+                f"{what} at subframe {a}, before the previous frame's {self._last_applied}: "
+                "its applied subframes went backwards"
+            )
+        if self.subframe_s and self._clock_ref is not None and self._info is not None:
+            c0, t0 = self._clock_ref
+            elapsed = max(0.0, time.monotonic() - t0) / self.subframe_s
+            limit = (
+                c0
+                + int(elapsed * (1 + CLOCK_TOLERANCE))
+                + self._info.latency_subframes
+                + CLOCK_SLACK_SUBFRAMES
+            )
+            if a > limit:
+                raise DeviceError(
+                    f"{what} at subframe {a}, a subframe that has not happened yet (its clock "
+                    f"can have reached at most {limit} at {self.subframe_s:g} s per subframe)"
+                )
 
     def _after_rx(self) -> None:
         if self._resync_needed:

@@ -15,7 +15,8 @@ behind a transport:
 
 Modules: :mod:`.config` (settings, the record), :mod:`.clock` (subframe clocks),
 :mod:`.wire` (link throttling), :mod:`.faults` (fault injection), :mod:`.controller`
-(device state and protocol rules), :mod:`.core` (all of it driven by time),
+(device state and protocol rules), :mod:`.core` (all of it driven by time), :mod:`.hostile` (a
+misbehaving controller),
 :mod:`.transport` (in-process port), :mod:`.process` (own process on a pty),
 :mod:`.cli` (``python -m``).
 
@@ -42,15 +43,18 @@ from .clock import FreeRunningClock, SubframeClock
 from .config import EmulatorConfig, EmulatorRecord
 from .controller import Controller
 from .core import LCoSEmulatorCore
+from .hostile import HOSTILE_BEHAVIOURS, HostileController
 from .process import LCoSEmulator
 from .transport import EmulatedSerial, InProcessLCoS
 
 __all__ = [
+    "HOSTILE_BEHAVIOURS",
     "Controller",
     "EmulatedSerial",
     "EmulatorConfig",
     "EmulatorRecord",
     "FreeRunningClock",
+    "HostileController",
     "InProcessLCoS",
     "LCoSEmulator",
     "LCoSEmulatorCore",

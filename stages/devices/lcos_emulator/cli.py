@@ -9,6 +9,7 @@ import sys
 
 from ...errors import InputError
 from .config import EmulatorConfig
+from .hostile import HOSTILE_BEHAVIOURS
 from .process import serve
 
 __all__ = ["main"]
@@ -45,6 +46,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--link-fault-rate", type=float, default=0.0)
     ap.add_argument("--disconnect-at-subframe", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--hostile",
+        choices=sorted(HOSTILE_BEHAVIOURS),
+        default=None,
+        help="misbehave on purpose (docs/lcos-protocol.md §9)",
+    )
+    ap.add_argument(
+        "--hostile-after", type=int, default=0, help="host frames answered honestly first"
+    )
     ap.add_argument("--record", default=None, help="write the final record to this .npz")
     ap.add_argument("--connect-timeout-s", type=float, default=60.0)
     args = ap.parse_args(argv)
@@ -59,6 +69,8 @@ def main(argv: list[str] | None = None) -> int:
             disconnect_at_subframe=args.disconnect_at_subframe,
             seed=args.seed,
             connect_timeout_s=args.connect_timeout_s,
+            hostile=args.hostile,
+            hostile_after=args.hostile_after,
         )
     except InputError as exc:
         print(f"lcos_emulator: error: {exc}", file=sys.stderr)

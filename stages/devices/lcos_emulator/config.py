@@ -51,6 +51,11 @@ class EmulatorConfig:
         Replies remembered for answering retransmitted frames.
     connect_timeout_s : float
         The emulator process exits if no host writes within this time.
+    hostile : str or None
+        A scripted misbehaviour (a key of
+        :data:`~stages.devices.lcos_emulator.hostile.HOSTILE_BEHAVIOURS`); None = honest.
+    hostile_after : int
+        Host frames (INFO included) handled honestly before the misbehaviour starts.
     """
 
     cells: tuple[int, int] = (1024, 600)
@@ -67,6 +72,8 @@ class EmulatorConfig:
     idle_expire_s: float = 0.05
     reply_cache: int = 1024
     connect_timeout_s: float = 60.0
+    hostile: str | None = None
+    hostile_after: int = 0
 
     def __post_init__(self) -> None:
         self.cells = (int(self.cells[0]), int(self.cells[1]))
@@ -84,6 +91,11 @@ class EmulatorConfig:
             (self.subframe_s is None or self.subframe_s > 0, "subframe length must be positive"),
             (self.idle_expire_s > 0, "idle expiry must be positive"),
             (self.reply_cache >= 256, "reply cache must hold at least 256 replies"),
+            (
+                self.hostile is None or self.hostile in _hostile_names(),
+                f"hostile behaviour must be one of {', '.join(sorted(_hostile_names()))}",
+            ),
+            (self.hostile_after >= 0, "hostile_after must be a non-negative frame count"),
         ]
         for ok, message in checks:
             if not ok:
@@ -99,6 +111,12 @@ class EmulatorConfig:
         }
         base.update(overrides)
         return cls(**base)
+
+
+def _hostile_names() -> frozenset[str]:
+    from .hostile import HOSTILE_BEHAVIOURS
+
+    return frozenset(HOSTILE_BEHAVIOURS)
 
 
 @dataclass

@@ -22,6 +22,7 @@ from ..protocol import Frame, FrameParser, NakReason, max_payload_bytes
 from .config import EmulatorConfig, EmulatorRecord
 from .controller import Controller
 from .faults import FaultInjector
+from .hostile import HostileController
 from .wire import Wire
 
 __all__ = ["LCoSEmulatorCore"]
@@ -40,8 +41,8 @@ class LCoSEmulatorCore:
     now : callable returning float
         Monotonic time in seconds.
     controller : type, optional
-        The device state machine (default :class:`~.controller.Controller`; a scripted
-        misbehaving one for hostile-device tests).
+        The device state machine (default: :class:`~.controller.Controller`, or
+        :class:`~.hostile.HostileController` when ``config.hostile`` is set).
     """
 
     def __init__(
@@ -49,12 +50,14 @@ class LCoSEmulatorCore:
         config: EmulatorConfig,
         clock: Callable[[], int],
         now: Callable[[], float] = time.monotonic,
-        controller: type[Controller] = Controller,
+        controller: type[Controller] | None = None,
     ):
         self.config = config
         self._clock = clock
         self._now = now
         self.counters: dict[str, int] = collections.defaultdict(int)
+        if controller is None:
+            controller = HostileController if config.hostile else Controller
         self.device = controller(config, clock, self._transmit, self.counters)
         self.n_cells = self.device.n_cells
         self._faults = FaultInjector(config.link_fault_rate, config.fault_delay_s, config.seed)

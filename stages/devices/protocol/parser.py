@@ -42,6 +42,13 @@ class FrameParser:
         by :meth:`expire`.
     skipped_bytes : int
         Bytes discarded while hunting for SYNC (garbage and the remains of bad frames).
+    truncated : int
+        Partial frames abandoned by :meth:`expire` (also counted in ``bad_frames``).
+    bad_headers : int
+        Headers starting with SYNC whose version, command or length is impossible
+        (their bytes are counted in ``skipped_bytes``).
+    last_bad_header : str
+        What the last impossible header said, in words (empty before any).
     """
 
     def __init__(
@@ -55,6 +62,9 @@ class FrameParser:
         self.frames = 0
         self.bad_frames = 0
         self.skipped_bytes = 0
+        self.truncated = 0
+        self.bad_headers = 0
+        self.last_bad_header = ""
 
     @property
     def pending(self) -> int:
@@ -105,6 +115,7 @@ class FrameParser:
             return b""
         if len(self._buf) >= 2 and self._buf[:2] == SYNC:
             self.bad_frames += 1
+            self.truncated += 1
         dropped = bytes(self._buf[:1])
         del self._buf[:1]
         self.skipped_bytes += 1
@@ -147,6 +158,8 @@ class FrameParser:
                 or command not in self.commands
                 or not length_ok(command, length, self.max_payload)
             ):
+                self.bad_headers += 1
+                self.last_bad_header = _describe_header(version, command, length, self.commands)
                 yield "garbage", self._skip(1)
                 continue
             total = HEADER_BYTES + length + CRC_BYTES
@@ -161,3 +174,13 @@ class FrameParser:
             del buf[:total]
             self.frames += 1
             yield "frame", Frame(seq=seq, command=Command(command), payload=body, version=version)
+
+
+def _describe_header(version: int, command: int, length: int, accepted: frozenset) -> str:
+    """An impossible header in words (for error messages)."""
+    if version != PROTOCOL_VERSION:
+        return f"a header of protocol version {version}"
+    if command not in accepted:
+        known = command in Command._value2member_map_
+        return f"a {Command(command).name} frame" if known else f"unknown command 0x{command:02x}"
+    return f"{Command(command).name} header announcing {length} payload bytes"
