@@ -28,9 +28,11 @@ from stages.devices.protocol import (
     INFO_REPLY_MAX_BYTES,
     SYNC,
     Command,
+    DeviceInfo,
     FrameParser,
     encode_ack,
     encode_frame,
+    encode_info_reply,
 )
 from stages.errors import DeviceError
 from tests.conftest import run_vet
@@ -46,7 +48,8 @@ BOUND_S = 3.0  # each driver case ends well within (1 + max_retries) * timeouts 
 def _session(behaviour: str, **device):
     """INFO and OPEN_ALL answered honestly (clock at 100), then ``behaviour``."""
     emu = InProcessLCoS((W, H), hostile=behaviour, hostile_after=2, **device)
-    lcos = SerialLCoS(emu.port, subframe_s=device.get("subframe_s"), **LINK)
+    clock = {"subframe_s": device["subframe_s"]} if "subframe_s" in device else {}
+    lcos = SerialLCoS(emu.port, **clock, **LINK)
     if emu.config.subframe_s is None:
         emu.tick(100)
     s0 = lcos.open_all(0)
@@ -153,6 +156,41 @@ def test_a_silent_device_at_connect_is_a_bounded_device_error():
     with pytest.raises(DeviceError, match=r"frame 0 \(INFO\).*sent nothing at all"):
         SerialLCoS(emu.port, **LINK)
     assert time.monotonic() - t < BOUND_S
+
+
+class _OneReply:
+    """A port that answers the first write with ``reply`` and then stays silent."""
+
+    def __init__(self, reply: bytes) -> None:
+        self.timeout = 0.01
+        self._rx = b""
+        self._reply = reply
+
+    def write(self, data: bytes) -> int:
+        self._rx, self._reply = self._rx + self._reply, b""
+        return len(data)
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self._rx)
+
+    def read(self, size: int = 1) -> bytes:
+        out, self._rx = self._rx[:size], self._rx[size:]
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_device_claiming_a_huge_grid_is_refused_before_allocating():
+    info = DeviceInfo((8192, 8192), 1, 1, 0.002, 0, 0, "liar", seq=0)
+    port = _OneReply(encode_frame(Command.INFO_REPLY, 0, encode_info_reply(info)))
+    tracemalloc.start()
+    with pytest.raises(DeviceError, match="reports 8192x8192 cells but the rig says 16x8"):
+        SerialLCoS(port, cells=(W, H), **LINK)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 1 << 20  # a 64 Mi-cell record would take hundreds of MB
 
 
 def test_an_absurd_length_costs_no_memory_and_the_next_frame_is_found():

@@ -12,7 +12,20 @@ import numpy as np
 
 from ...errors import InputError
 
-__all__ = ["EmulatorConfig", "EmulatorRecord"]
+__all__ = ["HOSTILE_BEHAVIOURS", "EmulatorConfig", "EmulatorRecord"]
+
+#: Scripted misbehaviours of :class:`~.hostile.HostileController`, by name.
+HOSTILE_BEHAVIOURS = {
+    "garbage": "answers every frame with random bytes instead of a reply",
+    "truncated": "sends only the first half of every reply",
+    "bad-crc": "sends every reply with its CRC damaged",
+    "replay": "acknowledges every new frame with the last acknowledgement again",
+    "future-seq": "acknowledges frames the host has not sent yet",
+    "future-subframe": "claims to have applied frames a million subframes from now",
+    "backwards": "claims to have applied each frame before the previous one",
+    "huge-length": "sends reply headers announcing 2**31 payload bytes",
+    "silent": "answers nothing at all",
+}
 
 
 @dataclass
@@ -92,8 +105,8 @@ class EmulatorConfig:
             (self.idle_expire_s > 0, "idle expiry must be positive"),
             (self.reply_cache >= 256, "reply cache must hold at least 256 replies"),
             (
-                self.hostile is None or self.hostile in _hostile_names(),
-                f"hostile behaviour must be one of {', '.join(sorted(_hostile_names()))}",
+                self.hostile is None or self.hostile in HOSTILE_BEHAVIOURS,
+                f"hostile behaviour must be one of {', '.join(sorted(HOSTILE_BEHAVIOURS))}",
             ),
             (self.hostile_after >= 0, "hostile_after must be a non-negative frame count"),
         ]
@@ -111,12 +124,6 @@ class EmulatorConfig:
         }
         base.update(overrides)
         return cls(**base)
-
-
-def _hostile_names() -> frozenset[str]:
-    from .hostile import HOSTILE_BEHAVIOURS
-
-    return frozenset(HOSTILE_BEHAVIOURS)
 
 
 @dataclass

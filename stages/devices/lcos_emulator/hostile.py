@@ -17,23 +17,11 @@ from collections.abc import Callable
 import numpy as np
 
 from ..protocol import SYNC, Command, Frame, encode_ack, mask_crc
-from .config import EmulatorConfig
+from .config import HOSTILE_BEHAVIOURS, EmulatorConfig
 from .controller import Controller
 
 __all__ = ["HOSTILE_BEHAVIOURS", "HostileController"]
 
-#: What the device does once hostile, by name.
-HOSTILE_BEHAVIOURS = {
-    "garbage": "answers every frame with random bytes instead of a reply",
-    "truncated": "sends only the first half of every reply",
-    "bad-crc": "sends every reply with its CRC damaged",
-    "replay": "acknowledges every new frame with the last acknowledgement again",
-    "future-seq": "acknowledges frames the host has not sent yet",
-    "future-subframe": "claims to have applied frames a million subframes from now",
-    "backwards": "claims to have applied each frame before the previous one",
-    "huge-length": "sends reply headers announcing 2**31 payload bytes",
-    "silent": "answers nothing at all",
-}
 
 _HEADER = struct.Struct("<2sBHBI")
 
@@ -76,6 +64,7 @@ class HostileController(Controller):
             return
         self.counters["hostile_replies"] += 1
         if self.behaviour == "replay" and self._last_ack is not None:
+            self._cache[frame.seq] = self._last_ack  # retransmissions get the replay too
             self._send(self._last_ack)
             return
         seq, at = frame.seq, applied
