@@ -149,7 +149,12 @@ class FrameLink:
       when ``link_bps`` is known), the oldest unacknowledged frame and those after it
       are resent;
     * a frame transmitted ``1 + max_retries`` times without acknowledgement raises
-      :class:`~stages.errors.DeviceError`.
+      :class:`~stages.errors.DeviceError` saying what the device sent since its last
+      useful reply (:meth:`device_behaviour`);
+    * only replies that move the session on (an ACK of an outstanding frame, a NAK
+      naming one) restart the silence timer: replayed ACKs cannot keep it alive;
+    * an ACK naming a frame not yet sent raises :class:`~stages.errors.DeviceError` at
+      once (the device is lying or confused).
 
     Acknowledged frames are passed to ``commit`` in sequence order; after each batch of
     received frames ``after_rx`` runs (the owner may send from it).
