@@ -21,7 +21,13 @@ import pytest
 from click.testing import CliRunner
 
 from stages.devices import SerialLCoS
-from stages.devices.lcos_emulator import HOSTILE_BEHAVIOURS, InProcessLCoS, LCoSEmulator
+from stages.devices.lcos_emulator import (
+    HOSTILE_BEHAVIOURS,
+    EmulatorConfig,
+    InProcessLCoS,
+    LCoSEmulator,
+)
+from stages.devices.lcos_emulator import main as emulator_main
 from stages.devices.protocol import (
     DEVICE_COMMANDS,
     FRAME_OVERHEAD,
@@ -34,7 +40,7 @@ from stages.devices.protocol import (
     encode_frame,
     encode_info_reply,
 )
-from stages.errors import DeviceError
+from stages.errors import DeviceError, InputError
 from tests.conftest import run_vet
 from vet_cli.main import cli
 
@@ -82,6 +88,14 @@ def test_every_behaviour_is_documented_and_tested():
     assert set(HOSTILE_BEHAVIOURS) == tested
     doc = (Path(__file__).parents[1] / "docs" / "lcos-protocol.md").read_text(encoding="utf-8")
     assert all(f"`{name}`" in doc for name in tested)
+
+
+def test_an_unknown_behaviour_is_refused_by_name():
+    with pytest.raises(InputError, match="hostile behaviour must be one of backwards, bad-crc"):
+        EmulatorConfig(hostile="rude")
+    with pytest.raises(SystemExit) as exc:
+        emulator_main(["--hostile", "rude"])
+    assert exc.value.code == 2
 
 
 # --- through the driver, one per misbehaviour -----------------------------------------
