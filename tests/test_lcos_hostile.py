@@ -121,9 +121,9 @@ def test_bad_crc_replies_are_dropped_and_reported():
 
 
 def test_replayed_acknowledgements_do_not_keep_the_link_alive():
-    emu, lcos, _ = _session("replay")
+    emu, lcos, _ = _session("replay")  # and repeats it unasked every 10 ms
     _fails(lcos, r"replayed acknowledgement")
-    assert lcos.stats.duplicate_acks >= 1
+    assert lcos.stats.duplicate_acks >= 5
     assert lcos.applied_subframe[[1, 2]].tolist() == [-1, -1]
 
 

@@ -19,7 +19,7 @@ HOSTILE_BEHAVIOURS = {
     "garbage": "answers every frame with random bytes instead of a reply",
     "truncated": "sends only the first half of every reply",
     "bad-crc": "sends every reply with its CRC damaged",
-    "replay": "acknowledges every new frame with the last acknowledgement again",
+    "replay": "acknowledges every new frame with the last acknowledgement, and repeats it",
     "future-seq": "acknowledges frames the host has not sent yet",
     "future-subframe": "claims to have applied frames a million subframes from now",
     "backwards": "claims to have applied each frame before the previous one",

@@ -98,6 +98,9 @@ class Controller:
             seq=seq,
         )
 
+    def on_poll(self, now: float) -> None:
+        """Time passes (``now``, seconds): the honest controller only speaks when spoken to."""
+
     def inject_mask_fault(self, cells: ArrayLike) -> None:
         """Silently open cells (a cell driver glitch) so the host sees a CRC mismatch."""
         idx = np.asarray(cells, dtype=np.int64).ravel()

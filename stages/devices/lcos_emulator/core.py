@@ -145,6 +145,7 @@ class LCoSEmulatorCore:
             # e.g. a corrupted length field announced bytes that will never come
             self._parser.expire()
             self._device_input(b"")
+        self.device.on_poll(t)
 
     # -- state -------------------------------------------------------------------------
     def record(self, exit_reason: str = "") -> EmulatorRecord:

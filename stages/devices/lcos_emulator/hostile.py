@@ -24,6 +24,7 @@ __all__ = ["HOSTILE_BEHAVIOURS", "HostileController"]
 
 
 _HEADER = struct.Struct("<2sBHBI")
+CHATTER_S = 0.01  #: interval of the unasked replays of ``replay``, seconds
 
 
 class HostileController(Controller):
@@ -45,11 +46,20 @@ class HostileController(Controller):
         self.active = False
         self._last_ack: bytes | None = None
         self._last_acked_applied = 0
+        self._next_chatter = 0.0
 
     def handle(self, frame: Frame) -> None:
         self._seen += 1
         self.active = self.behaviour is not None and self._seen > self.config.hostile_after
         super().handle(frame)
+
+    def on_poll(self, now: float) -> None:
+        """``replay``: repeat the last acknowledgement every :data:`CHATTER_S` unasked."""
+        if self.active and self.behaviour == "replay" and self._last_ack is not None:
+            if now >= self._next_chatter:
+                self._next_chatter = now + CHATTER_S
+                self.counters["hostile_replies"] += 1
+                self._send(self._last_ack)
 
     def acknowledge(self, frame: Frame, applied: int) -> None:
         if not self.active or self.behaviour not in (
