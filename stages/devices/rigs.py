@@ -14,6 +14,8 @@ Rig file (TOML) for real hardware::
     url = "/dev/ttyACM0"          # any pyserial URL: /dev/ttyUSB0, socket://host:port, ...
     baudrate = 115200             # optional (UARTs)
     link_bps = 12e6               # optional: the link's real rate, for ACK timeouts
+    ack_timeout_s = 0.5           # optional: silence before a frame is resent
+    max_retries = 8               # optional: resends before the capture gives up
 
     [measurement_camera]
     source = "/dev/video0"        # V4L2 device, video file, image pattern or folder (replay)
@@ -188,7 +190,7 @@ def open_sim_rig(opts: SimOptions) -> Rig:
         seed=opts.seed,
     )
     try:
-        lcos = SerialLCoS(emu.port, link_bps=opts.link_bps)
+        lcos = SerialLCoS(emu.port, link_bps=opts.link_bps, cells=params.lcos_cells)
     except Exception:
         emu.stop()
         raise
@@ -230,6 +232,14 @@ def open_sim_rig(opts: SimOptions) -> Rig:
     )
 
 
+_LCOS_NUMBERS = (
+    ("baudrate", int, 1, 1e9),
+    ("link_bps", (int, float), 1, 1e12),
+    ("ack_timeout_s", (int, float), 1e-3, 60),
+    ("max_retries", int, 0, 100),
+)
+
+
 def load_rig_file(path: str | Path) -> dict[str, Any]:
     """Parse and check a rig TOML file."""
     if sys.version_info >= (3, 11):
@@ -249,6 +259,10 @@ def load_rig_file(path: str | Path) -> dict[str, Any]:
             raise InputError(f"{p}: rig file lacks the [{section}] section")
     if "url" not in data["lcos"]:
         raise InputError(f'{p}: [lcos] needs url = "/dev/ttyACM0" (any pyserial URL)')
+    for key, kind, lo, hi in _LCOS_NUMBERS:
+        v = data["lcos"].get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, kind) or not lo <= v <= hi):
+            raise InputError(f"{p}: [lcos] {key} must be a number in [{lo:g}, {hi:g}], got {v!r}")
     for cam in ("measurement_camera", "vet_camera"):
         backend = data[cam].get("backend", "opencv")
         if backend not in CAMERA_BACKENDS:
@@ -281,7 +295,15 @@ def open_hardware_rig(path: str | Path) -> Rig:
     data = load_rig_file(path)
     params = RigParams.from_dict(dict(data.get("params", {})))
     lc = data["lcos"]
-    lcos = SerialLCoS(str(lc["url"]), baudrate=lc.get("baudrate"), link_bps=lc.get("link_bps"))
+    link = {k: lc[k] for k in ("ack_timeout_s", "max_retries") if k in lc}
+    lcos = SerialLCoS(
+        str(lc["url"]),
+        baudrate=lc.get("baudrate"),
+        link_bps=lc.get("link_bps"),
+        cells=params.lcos_cells,
+        subframe_s=params.subframe_s,
+        **link,
+    )
     meas = _camera(data["measurement_camera"], f"{path}: [measurement_camera]", params.subframe_s)
     vet = _camera(data["vet_camera"], f"{path}: [vet_camera]", params.frame_s)
     return Rig(
