@@ -83,6 +83,7 @@ def run_evaluation(
     rig_changes: dict[str, Any] | None = None,
     scale: float | None = None,
     reach_subframes: float = 1.0,
+    on_step: Callable[[int, int], None] | None = None,
 ) -> Evaluation:
     """Simulate, reconstruct and score the methods in ``rows`` (module docstring).
 
@@ -90,6 +91,8 @@ def run_evaluation(
     DESIGN.md's defaults; ``scale`` and ``reach_subframes`` set the radiance scale as in
     :func:`stages.simulate.simulate`. Only the comparison captures that ``rows`` needs
     are rendered; the VET capture always is, since it defines the dark/bright split.
+    ``progress(message)`` names each part as it starts; ``on_step(done, total)`` counts
+    the parts (the simulation, then one per row) before each starts and at the end.
     """
     from .deblur import deblur
     from .hdr_static import hdr_static
@@ -103,12 +106,15 @@ def run_evaluation(
     if unknown or not rows:
         raise ValueError(f"unknown methods {unknown}; choose from {', '.join(ROWS)}")
     say = progress or (lambda msg: None)
+    step = on_step or (lambda done, total: None)
+    n_steps = 1 + len(rows)
     scene = load_scene(scene_spec, size)
     h, w = scene.radiance.shape[:2]
     motion = parse_motion(motion_spec)
     changes = dict(rig_changes or {})
     rig = RigParams(**{**changes, "sensor_size": (w, h)})
     renders = ["vet"] + [m for m in ("long", "short", "adaptive-attenuation") if m in rows]
+    step(0, n_steps)
     say(f"simulating {w}x{h} {motion.spec}")
     t0 = time.perf_counter()
     caps = simulate(
@@ -148,7 +154,8 @@ def run_evaluation(
         "vet-deblur-paper": lambda: deblur(vet, "paper"),
         "vet-deblur-oracle": lambda: deblur(vet, "vet", motion_init="truth"),
     }
-    for name in rows:
+    for i, name in enumerate(rows):
+        step(1 + i, n_steps)
         say(f"reconstructing {name}")
         t0 = time.perf_counter()
         img, vel = plan[name]()
@@ -163,6 +170,7 @@ def run_evaluation(
             ev.scores[name]["dark"]["rms"],
             ev.runtime_s[name],
         )
+    step(n_steps, n_steps)
     return ev
 
 

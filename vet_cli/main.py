@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+from typing import Any
 
 import click
 
@@ -58,6 +59,13 @@ class LazyGroup(click.Group):
         module, _help = COMMANDS[name]
         return importlib.import_module(module).cli
 
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        # "vet" whether run as the console script or as python -m vet_cli, so that shell
+        # completion is always _VET_COMPLETE (eval "$(_VET_COMPLETE=bash_source vet)").
+        kwargs.setdefault("prog_name", "vet")
+        kwargs.setdefault("complete_var", "_VET_COMPLETE")
+        return super().main(*args, **kwargs)
+
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, hlp) for name, (_m, hlp) in COMMANDS.items()]
         with formatter.section("Commands"):
@@ -65,7 +73,7 @@ class LazyGroup(click.Group):
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, prog_name="vet")
+@click.version_option(__version__, "-V", "--version", prog_name="vet")
 @verbosity_options
 def cli() -> None:
     """vet: variable exposure time (VET) HDR imaging.
@@ -79,4 +87,6 @@ def cli() -> None:
       vet simulate builtin:interior -o - | vet hdr-static - -o - | vet tonemap - -o out.png
 
     Exit status: 0 success, 1 runtime failure (one-line message), 2 usage error.
+    Existing outputs are replaced only with --force. Shell completion (bash, zsh, fish):
+    eval "$(_VET_COMPLETE=bash_source vet)".
     """

@@ -547,4 +547,6 @@ def deblur_joint(
         )
         if progress:
             progress(it + 1, total)
+    if progress:  # (also when no pixel moves and the loop stopped early)
+        progress(total, total)
     return L.reshape(h, wd, c).astype(np.float32), vel
