@@ -9,7 +9,7 @@ import click
 
 from stages import __version__
 
-from ._common import verbosity_options
+from ._common import State, verbosity_options
 
 # name -> (module, short help). Modules are imported only when the command runs.
 COMMANDS = {
@@ -62,6 +62,7 @@ class LazyGroup(click.Group):
     def main(self, *args: Any, **kwargs: Any) -> Any:
         # "vet" whether run as the console script or as python -m vet_cli, so that shell
         # completion is always _VET_COMPLETE (eval "$(_VET_COMPLETE=bash_source vet)").
+        State.verbosity = 0  # -v/-q count per invocation (several may share a process)
         kwargs.setdefault("prog_name", "vet")
         kwargs.setdefault("complete_var", "_VET_COMPLETE")
         return super().main(*args, **kwargs)
