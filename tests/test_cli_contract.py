@@ -335,16 +335,43 @@ def test_progress_is_silent_when_quiet_and_for_short_steps(monkeypatch):
     assert stream.getvalue() == ""
 
 
-@pytest.mark.parametrize("method", ["vet", "paper"])
-def test_deblur_progress_reaches_its_total(small_capture, method):
-    from stages.deblur import deblur
+@pytest.fixture(scope="module")
+def moving_capture():
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
 
+    scene = load_scene("builtin:chart", (128, 96))  # the smallest the pyramid coarsens
+    rig = RigParams(sensor_size=(128, 96))
+    return simulate(scene, parse_motion("translate:20,0"), rig, seed=1, measure_bins=4)["vet"]
+
+
+@pytest.mark.parametrize(
+    "method,motion,moving",
+    [("vet", "zero", False), ("vet", "truth", True), ("paper", "zero", False)],
+    ids=["vet-still", "vet-coarse-to-fine", "paper"],
+)
+def test_deblur_progress_reaches_its_total(small_capture, moving_capture, method, motion, moving):
+    from stages.deblur import deblur
+    from stages.deblur.paper import PaperOptions
+
+    cap = moving_capture if moving else small_capture
+    options = PaperOptions(sd_iters=5) if method == "paper" else None  # (fast; same loop)
     calls = []
-    deblur(small_capture, method, motion_init="zero", progress=lambda d, t: calls.append((d, t)))
+    deblur(
+        cap, method, motion_init=motion, options=options, progress=lambda d, t: calls.append((d, t))
+    )
     assert calls and calls[-1][0] == calls[-1][1], calls
     assert all(d <= t for d, t in calls)
+    # Reported from the start (the motion estimate is the first step), never backwards.
+    assert calls[0] == (0, 1) and calls[1][0] == 1, calls
+    done = [d for d, _t in calls]
+    assert done == sorted(done), calls
     if method == "paper":  # more than the two outer passes: the bar moves within them
-        assert calls[-1][1] > 2
+        assert calls[-1][1] > 3
+    if moving:  # the coarse start's steps count: the bar moves before the fine solve
+        assert len({d for d, _t in calls}) > 6, calls
 
 
 def test_evaluate_counts_its_parts():

@@ -138,7 +138,7 @@ class Progress:
         self,
         label: str,
         delay_s: float = 2.0,
-        every_s: float = 10.0,
+        every_s: float = 5.0,
         stream: Any = None,
     ):
         self.label = label
