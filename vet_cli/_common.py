@@ -183,7 +183,7 @@ class Progress:
             self.shown = True
             return
         at_end = self.done >= self.total
-        if self.part and not at_end:  # note() lines say where it stands
+        if self.done == 0 or (self.part and not at_end):  # (note() lines say where it is)
             return
         if now - self.start < self.delay_s and not (at_end and self.shown):
             return
@@ -227,6 +227,7 @@ class Progress:
             dynamic_ncols=True,
             bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}]",
         )
+        self.bar.start_t -= time.monotonic() - self.start  # elapsed since the step began
 
     def _line(self, text: str) -> None:
         elapsed = time.monotonic() - self.start
