@@ -225,6 +225,12 @@ BAD_VALUES = {
     "gamma": (["tonemap", "x.exr", "--gamma", "0"], "x>0"),
     "method": (["simulate", "builtin:chart", "--method", "bogus"], "'vet', 'long'"),
     "seed": (["simulate", "builtin:chart", "--seed", "one"], "not a valid integer"),
+    "negative seed": (["capture", "--rig", "sim", "--seed", "-5"], "x>=0"),
+    "exposure": (["tonemap", "x.exr", "--exposure", "nan"], "not a finite number"),
+    "rig together": (
+        ["evaluate", "builtin:chart", "--subframe-s", "2"],
+        "subframe length must be in (0, frame length]",
+    ),
     "link": (["capture", "--rig", "sim", "--link-bps", "-3"], "x>0"),
     "map and mask": (["tonemap", "x.exr", "--exposure-time-map", "--mask"], "not both"),
 }
@@ -249,6 +255,7 @@ def test_invalid_option_values_are_usage_errors(tmp_path, case):
         ("deblur.foo=1", "step 'deblur' has no parameter 'foo'"),
         ("deblur.method=fast", "deblur method must be one of vet, paper, not 'fast'"),
         ("deblur.fuse_still=maybe", "fuse_still must be one of true, false, auto"),
+        ("tonemap.exposure=nan", "tonemap exposure must be a number of stops within +/-64"),
     ],
 )
 @pytest.mark.parametrize("dry", [False, True], ids=["run", "dry-run"])
@@ -256,7 +263,7 @@ def test_batch_params_are_checked_before_any_capture_runs(tmp_path, cap_file, pa
     root, out = tmp_path / "root", tmp_path / "out"
     root.mkdir()
     cap_file.rename(root / "a.exr")
-    argv = ["batch", root, "-o", out, "-j", "1", "--steps", "hdr-static,deblur"]
+    argv = ["batch", root, "-o", out, "-j", "1", "--steps", "hdr-static,deblur,tonemap"]
     res = invoke(*argv, "--param", param, *(["-n"] if dry else []))
     err = err_of(res)
     assert res.exit_code == 2, err

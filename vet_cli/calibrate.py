@@ -7,7 +7,7 @@ import click
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides
 from .outputs import Output, check_outputs, force_option
-from .params import SIZE
+from .params import SEED, SIZE
 
 
 @click.command(
@@ -56,7 +56,7 @@ Example:
 )
 @click.option("--scene", default=None, help="[sim] Scene instead of the flat field.")
 @click.option("--size", type=SIZE, default=None, help="[sim] Sensor size [1280x1024].")
-@click.option("--seed", type=int, default=0, show_default=True, help="[sim] Noise seed.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="[sim] Noise seed.")
 @click.option(
     "--average",
     type=click.IntRange(1, 1000),

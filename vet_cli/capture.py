@@ -7,7 +7,7 @@ import click
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides
 from .outputs import CAPTURE_FOLDER_FILES, Output, check_outputs, force_option
-from .params import MOTION, SIZE, positive
+from .params import MOTION, SEED, SIZE, positive
 
 
 @click.command(
@@ -36,7 +36,7 @@ Example:
 )
 @click.option("--motion", type=MOTION, default="none", show_default=True, help="[sim] Motion SPEC.")
 @click.option("--size", type=SIZE, default=None, help="[sim] Resample the scene.")
-@click.option("--seed", type=int, default=0, show_default=True, help="[sim] Noise and fault seed.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="[sim] Noise and fault seed.")
 @click.option(
     "--link-bps", type=positive(), default=None, help="[sim] LCoS link rate, bit/s [unthrottled]."
 )

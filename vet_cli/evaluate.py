@@ -9,7 +9,7 @@ from stages.evaluate import ROWS
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides, scale_choice, scale_options
 from .outputs import REPORT_FOLDER_FILES, Output, check_outputs, force_option
-from .params import MOTION, SIZE
+from .params import MOTION, SEED, SIZE
 
 
 def _methods(ctx: click.Context, param: click.Parameter, value: str) -> tuple[str, ...]:
@@ -48,7 +48,7 @@ Example:
     "--motion", type=MOTION, default="translate:30,0", show_default=True, help="Motion SPEC."
 )
 @click.option("--size", type=SIZE, default=None, help="Resample the scene to this sensor size.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed for all noise.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed for all noise.")
 @click.option(
     "--methods",
     default=",".join(ROWS),

@@ -54,6 +54,14 @@ def rig_overrides(kwargs: dict[str, Any]) -> dict[str, Any]:
     lcos = kwargs.pop("lcos", None)
     if lcos:
         out["lcos_cells"] = tuple(lcos)
+    if out:  # values valid alone may still disagree (a subframe longer than the frame)
+        from stages.errors import InputError
+        from stages.rig import RigParams
+
+        try:
+            RigParams(**out)
+        except InputError as exc:
+            raise click.UsageError(f"{exc} (rig options)") from None
     return out
 
 

@@ -78,3 +78,7 @@ def non_negative() -> FiniteFloatRange:
 
 MOTION = MotionSpec()
 SIZE = Size()
+#: Noise seeds: numpy's generators take non-negative integers.
+SEED = click.IntRange(min=0)
+#: Exposure shifts in stops (stages.tonemap's range).
+STOPS = FiniteFloatRange(-64, 64)

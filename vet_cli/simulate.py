@@ -7,7 +7,7 @@ import click
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides, scale_choice, scale_options
 from .outputs import Output, check_outputs, force_option
-from .params import MOTION, SIZE
+from .params import MOTION, SEED, SIZE
 
 BUILTINS = "interior, chart"
 METHODS = ["vet", "long", "short", "adaptive-attenuation"]
@@ -39,7 +39,7 @@ Example:
 @click.option(
     "--motion", type=MOTION, default="none", show_default=True, help="Motion SPEC (see above)."
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed for all noise.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed for all noise.")
 @click.option("--size", type=SIZE, default=None, help="Resample the scene to this sensor size.")
 @click.option(
     "--method",

@@ -8,7 +8,7 @@ import click
 
 from ._common import command, verbosity_options
 from .outputs import Output, check_outputs, force_option
-from .params import positive
+from .params import STOPS, positive
 
 OPERATORS = ["log", "reinhard", "drago", "mantiuk"]
 
@@ -35,7 +35,7 @@ Example:
 )
 @click.option("--operator", type=click.Choice(OPERATORS), default="log", show_default=True)
 @click.option(
-    "--exposure", type=float, default=0.0, show_default=True, help="Exposure shift in stops."
+    "--exposure", type=STOPS, default=0.0, show_default=True, help="Exposure shift in stops."
 )
 @click.option(
     "--gamma", type=positive(), default=None, help="Display gamma, > 0 [operator's default]."

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -157,12 +158,15 @@ def _validate_tonemap(params: dict[str, Any]) -> None:
         raise StepSpecError(
             f"tonemap operator {params['operator']!r} unknown; choose from {', '.join(OPERATORS)}"
         )
+    given = params["exposure"]
     try:
-        params["exposure"] = float(params["exposure"])
+        params["exposure"] = float(given)
     except (TypeError, ValueError):
+        params["exposure"] = math.nan
+    if not abs(params["exposure"]) <= 64:  # (NaN too)
         raise StepSpecError(
-            f"tonemap exposure must be a number of stops, not {params['exposure']!r}"
-        ) from None
+            f"tonemap exposure must be a number of stops within +/-64, not {given!r}"
+        )
     if params["bits"] not in (8, 16):
         raise StepSpecError(f"tonemap bits must be 8 or 16, not {params['bits']!r}")
 
