@@ -192,6 +192,12 @@ def test_standard_output_for_one_output_only(cap_file, extra):
     assert res.stdout_bytes == b""
 
 
+def test_two_outputs_may_not_name_one_file(tmp_path, cap_file):
+    res = invoke("deblur", cap_file, "-o", tmp_path / "x.exr", "--motion-out", tmp_path / "x.exr")
+    assert res.exit_code == 2 and "-o and --motion-out both name" in err_of(res), err_of(res)
+    assert not (tmp_path / "x.exr").exists()
+
+
 def test_binary_output_to_a_terminal_is_refused(monkeypatch, cap_file):
     import vet_cli.outputs
 

@@ -52,6 +52,13 @@ def verbosity_options(f: Callable) -> Callable:
     return f
 
 
+class _Formatter(logging.Formatter):
+    """Log lines as error lines are: the spool file of standard input named as such."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return _STDIN_SPOOL.sub("standard input", super().format(record))
+
+
 def setup_logging() -> None:
     level = (
         logging.INFO
@@ -64,7 +71,7 @@ def setup_logging() -> None:
     for h in list(root.handlers):
         root.removeHandler(h)
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("vet: %(message)s"))
+    handler.setFormatter(_Formatter("vet: %(message)s"))
     root.addHandler(handler)
     root.setLevel(level)
     logging.getLogger("distributed").setLevel(max(level, logging.WARNING))

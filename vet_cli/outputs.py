@@ -89,9 +89,16 @@ def check_outputs(outputs: Iterable[Output], force: bool = False) -> None:
             f"{to_stdout[0]} -: standard output is a terminal; redirect it to a file "
             "(> out.exr) or pipe it into another command"
         )
-    for o in outputs:
-        if str(o.path) == "-":
-            continue
+    files = [o for o in outputs if str(o.path) != "-"]
+    seen: dict[Path, str] = {}
+    for o in files:
+        key = Path(o.path).resolve()
+        if key in seen:
+            raise click.UsageError(
+                f"{seen[key]} and {o.option} both name {o.path}: one would replace the other"
+            )
+        seen[key] = o.option
+    for o in files:
         check_output(o.path, o.kind, parents=o.parents)
         if not force:
             refuse_existing(Path(o.path), o.holds if o.kind == "folder" else None)
