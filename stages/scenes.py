@@ -199,9 +199,8 @@ def scene_file_kind(path: str | Path) -> tuple[str | None, str | None]:
         fmt = inp.format_name().lower()
     finally:
         inp.close()
-    srgb = "srgb" in colorspace or (
-        fmt in ("png", "jpeg", "bmp", "gif", "webp") and "linear" not in colorspace
-    )
+    linear = "linear" in colorspace or colorspace.startswith("lin_")
+    srgb = "srgb" in colorspace or (fmt in ("png", "jpeg", "bmp", "gif", "webp") and not linear)
     parts = [w for w, on in (("8-bit", eight_bit), ("sRGB-encoded", srgb)) if on]
     return kind, (", ".join(parts) if parts else None)
 

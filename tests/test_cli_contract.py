@@ -135,16 +135,23 @@ def test_a_vet_file_of_another_kind_is_not_a_scene(tmp_path, cap_file, kind, com
     assert not out.exists()
 
 
-@pytest.mark.parametrize("ext", [".png", ".jpg"])
-def test_an_8bit_srgb_picture_as_scene_is_warned_about(tmp_path, ext):
+@pytest.mark.parametrize(
+    "ext,bits,what",
+    [
+        (".png", 8, "an 8-bit, sRGB-encoded"),
+        (".jpg", 8, "an 8-bit, sRGB-encoded"),
+        (".png", 16, "an sRGB-encoded"),
+    ],
+)
+def test_a_display_referred_picture_as_scene_is_warned_about(tmp_path, ext, bits, what):
     from stages.formats.images import write_display_image
 
     pic = tmp_path / f"photo{ext}"
     rng = np.random.default_rng(0)
-    write_display_image(pic, rng.uniform(0.1, 1, (32, 40, 3)).astype(np.float32), bits=8)
+    write_display_image(pic, rng.uniform(0.1, 1, (32, 40, 3)).astype(np.float32), bits=bits)
     res = invoke("simulate", pic, "-o", tmp_path / "c.exr")
     assert res.exit_code == 0, err_of(res)
-    assert "8-bit, sRGB-encoded image is display-referred, not linear radiance" in err_of(res)
+    assert f"{what} image is display-referred, not linear radiance" in err_of(res)
 
 
 def test_a_linear_hdr_image_is_a_scene_without_warning(tmp_path, cap_file):

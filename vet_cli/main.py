@@ -88,6 +88,6 @@ def cli() -> None:
       vet simulate builtin:interior -o - | vet hdr-static - -o - | vet tonemap - -o out.png
 
     Exit status: 0 success, 1 runtime failure (one-line message), 2 usage error.
-    Existing outputs are replaced only with --force. Shell completion (bash, zsh, fish):
-    eval "$(_VET_COMPLETE=bash_source vet)".
+    Existing outputs are replaced only with --force. Shell completion: in ~/.bashrc,
+    eval "$(_VET_COMPLETE=bash_source vet)" (zsh_source, fish_source for zsh, fish).
     """
