@@ -138,7 +138,8 @@ class Progress:
     A terminal gets an updating bar (tqdm); a pipe or a log gets a line at most every
     ``every_s`` seconds and one at the end. Steps shorter than ``delay_s`` show nothing,
     and ``-q`` shows nothing. :meth:`note` names the part under way (a bar's label, a
-    line on a pipe). Call :meth:`finish` (or use it as a context manager) at the end.
+    line on a pipe). ``counts=False`` shows the percentage alone (for a stage whose
+    units are not steps). Call :meth:`finish` (or use it as a context manager) at the end.
     """
 
     def __init__(
@@ -147,8 +148,10 @@ class Progress:
         delay_s: float = 2.0,
         every_s: float = 5.0,
         stream: Any = None,
+        counts: bool = True,
     ):
         self.label = label
+        self.counts = counts
         self.stream = stream if stream is not None else sys.stderr
         self.start = time.monotonic()
         self.delay_s = delay_s
@@ -190,7 +193,7 @@ class Progress:
             self.shown = True
             return
         at_end = self.done >= self.total
-        if self.done == 0 or (self.part and not at_end):  # (note() lines say where it is)
+        if self.done == 0:
             return
         if now - self.start < self.delay_s and not (at_end and self.shown):
             return
@@ -200,7 +203,9 @@ class Progress:
             return
         self.last = now
         self.ended = at_end
-        self._line(f"{self.done}/{self.total} ({100.0 * self.done / self.total:.0f}%)")
+        self._line(
+            f"{self.part} ({self._amount()})" if self.part and not at_end else self._amount()
+        )
 
     def note(self, part: str) -> None:
         """Name the part of the step now under way."""
@@ -213,11 +218,12 @@ class Progress:
             if self.bar is not None:
                 self.bar.set_description_str(self._desc(), refresh=True)
         else:
-            self._line(
-                f"{part} (step {self.done + 1} of {self.total})"
-                if self.total and self.done < self.total
-                else part
-            )
+            self.last = time.monotonic()
+            self._line(f"{part} ({self._amount()})" if self.total else part)
+
+    def _amount(self) -> str:
+        pct = f"{100.0 * self.done / max(self.total, 1):.0f}%"
+        return f"{self.done}/{self.total} ({pct})" if self.counts else pct
 
     def _desc(self) -> str:
         return f"vet: {self.label}" + (f" ({self.part})" if self.part else "")
@@ -232,7 +238,9 @@ class Progress:
             file=self.stream,
             leave=True,
             dynamic_ncols=True,
-            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}]",
+            bar_format="{desc}: {percentage:3.0f}%|{bar}|"
+            + (" {n_fmt}/{total_fmt}" if self.counts else "")
+            + " [{elapsed}<{remaining}]",
         )
         self.bar.start_t -= time.monotonic() - self.start  # elapsed since the step began
 
@@ -250,4 +258,4 @@ class Progress:
             self.bar = None
         elif self.shown and not self.ended and not self._quiet() and self.total:
             self.ended = True
-            self._line(f"{self.done}/{self.total} ({100.0 * self.done / self.total:.0f}%)")
+            self._line(self._amount())

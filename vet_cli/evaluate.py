@@ -75,7 +75,7 @@ def cli(
 
     check_outputs([Output("-o", output, "folder", holds=REPORT_FOLDER_FILES)], force)
     scale, reach = scale_choice(kwargs)
-    with Progress("evaluate", delay_s=0.0) as progress:
+    with Progress("evaluate", delay_s=0.0, counts=False) as progress:
         ev = run_evaluation(
             scene,
             motion,
