@@ -216,6 +216,27 @@ def test_binary_output_to_a_terminal_is_refused(monkeypatch, cap_file):
         assert res.stdout_bytes == b""
 
 
+def test_binary_output_to_a_real_terminal_is_refused():
+    import os
+    import subprocess
+
+    from tests.conftest import ROOT, VET
+
+    master, slave = os.openpty()
+    try:
+        res = subprocess.run(
+            [*VET, "simulate", "builtin:chart", "--size", "32x32", "-o", "-"],
+            stdout=slave,
+            stderr=subprocess.PIPE,
+            env=dict(os.environ, PYTHONPATH=str(ROOT)),
+            timeout=60,
+        )
+    finally:
+        os.close(slave)
+        os.close(master)
+    assert res.returncode == 2 and b"standard output is a terminal" in res.stderr, res.stderr
+
+
 # --- 5. every invalid option value is a usage error naming the valid form --------------
 
 BAD_VALUES = {
