@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data sample-hdr clean
+.PHONY: demo test test-slow bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data test-hardware sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +36,16 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
+
+# GenICam cameras (issue 20): Debian's Aravis (its fake GigE Vision camera included) and
+# PyGObject in the venv, then the camera tests against two fake cameras on loopback (the
+# second on 127.0.0.2, added to lo when root may; else one fake camera and a recorded frame).
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+test-hardware: $(STAMP)
+	$(SUDO) apt-get install -y -q aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config
+	$(BIN)/pip install --quiet 'PyGObject<3.51'
+	-ip addr show lo | grep -q 127.0.0.2 || $(SUDO) ip addr add 127.0.0.2/8 dev lo
+	VET_REQUIRE_HARDWARE=1 $(BIN)/python -m pytest -q -rs tests/test_genicam.py
 
 bench: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.run
