@@ -16,8 +16,9 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 DEMO_DIR := demo_out
+# The demo makes its folder afresh (vet replaces no existing output without --force).
 demo: $(STAMP)
-	@mkdir -p $(DEMO_DIR)
+	@rm -rf $(DEMO_DIR) && mkdir -p $(DEMO_DIR)
 	$(VET) simulate builtin:interior --size 640x512 --seed 1 -o $(DEMO_DIR)/still.exr
 	$(VET) hdr-static $(DEMO_DIR)/still.exr -o $(DEMO_DIR)/still.hdr.exr
 	$(VET) tonemap $(DEMO_DIR)/still.hdr.exr -o $(DEMO_DIR)/still.png

@@ -134,7 +134,7 @@ def test_cli_from_folder(tmp_path):
     assert cal.provenance["source"].startswith("folder:")
     # the command line's --lcos overrides the folder's rig.toml: a wrong grid is refused
     # as an incomplete Gray set plus the other parts, not silently misdecoded
-    r = run_vet("calibrate", "--frames", tmp_path / "rec", "--lcos", "80x24", "-o", out)
+    r = run_vet("calibrate", "--frames", tmp_path / "rec", "--lcos", "80x24", "-o", out, "--force")
     assert r.returncode == 0 and b"missing" in r.stderr
     assert c.read_calibration(out).homography is None
 

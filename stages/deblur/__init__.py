@@ -191,6 +191,11 @@ def deblur(
     if fuse_still is not None and method != "vet":
         raise InputError("choosing what still pixels take applies to the vet method only")
     motion_init = motion_init or ("layers" if method == "vet" else "farneback")
+    solve_progress = None
+    if progress is not None:  # the motion estimate counts as the first step
+        progress(0, 1)
+        solve_progress = lambda done, total: progress(done + 1, total + 1)  # noqa: E731
+
     t_start = time.perf_counter()
     static = hdr_static(cap)
     L_init = output_to_rate(cap, static.radiance).astype(np.float32)
@@ -225,7 +230,7 @@ def deblur(
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
         radiance, tiling = deblur_in_tiles(
-            deblur, cap, vel0, motion_model, opts, tile, workers, scheduler, progress
+            deblur, cap, vel0, motion_model, opts, tile, workers, scheduler, solve_progress
         )
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}
@@ -244,7 +249,7 @@ def deblur(
             *start,
             saturated,
             opts,
-            progress=progress,
+            progress=solve_progress,
             truth_cb=truth_cb,
             still=~np.any(vel0 != 0, axis=2) if motion_model != "truth" else None,
             report=report,
@@ -263,7 +268,7 @@ def deblur(
             static,
             saturated,
             opts,
-            progress=progress,
+            progress=solve_progress,
             truth_cb=truth_cb,
         )
         name = "vet-deblur-paper"
