@@ -15,12 +15,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ...errors import DeviceError
-from ..protocol import DeviceInfo
+from ..protocol import DeviceInfo, sorted_cell_indices
 
 if TYPE_CHECKING:
     from .link import LinkStats
 
-__all__ = ["LCoSDevice", "normalise_cells"]
+__all__ = ["LCoSDevice"]
 
 
 class LCoSDevice(abc.ABC):
@@ -122,7 +122,7 @@ class LCoSDevice(abc.ABC):
             With ``wait``, the subframe index at which the device applied the closure;
             otherwise (or when no cell was newly closed) None.
         """
-        idx = normalise_cells(cells, self.n_cells)
+        idx = sorted_cell_indices(cells, self.n_cells)
         return self._do_close_cells(idx, wait)
 
     def flush(self, timeout_s: float | None = None) -> None:
@@ -214,30 +214,3 @@ class LCoSDevice(abc.ABC):
 
     @abc.abstractmethod
     def _do_close(self) -> None: ...
-
-
-def normalise_cells(cells: ArrayLike, n_cells: int) -> np.ndarray:
-    """Sorted unique row-major cell indices from indices or a boolean mask.
-
-    Raises
-    ------
-    ValueError
-        If a mask has the wrong size, indices are not integers or lie outside
-        ``[0, n_cells)``.
-    """
-    arr = np.asarray(cells)
-    if arr.dtype == bool:
-        if arr.size != n_cells:
-            raise ValueError(f"a boolean cell mask must have {n_cells} elements, got {arr.size}.")
-        return np.flatnonzero(arr.ravel())
-    if arr.size == 0:
-        return np.zeros(0, dtype=np.int64)
-    if not np.issubdtype(arr.dtype, np.integer):
-        raise ValueError(f"cell indices must be integers, got dtype {arr.dtype}.")
-    idx = arr.ravel().astype(np.int64, copy=False)
-    lo, hi = int(idx.min()), int(idx.max())
-    if lo < 0 or hi >= n_cells:
-        raise ValueError(f"cell indices must lie in [0, {n_cells}); got {lo} .. {hi}.")
-    if idx.size > 1 and not bool(np.all(idx[1:] > idx[:-1])):
-        idx = np.unique(idx)
-    return idx

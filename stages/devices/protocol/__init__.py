@@ -16,7 +16,13 @@ Modules:
 * :mod:`.closures` -- CLOSE_DELTA closure encodings.
 """
 
-from .closures import closure_sizes, decode_closures, encode_closures, varint_sizes
+from .closures import (
+    closure_sizes,
+    decode_closures,
+    encode_closures,
+    sorted_cell_indices,
+    varint_sizes,
+)
 from .crc import CRC_BYTES, frame_crc, mask_crc
 from .frames import (
     FRAME_OVERHEAD,
@@ -96,6 +102,7 @@ __all__ = [
     "mask_crc",
     "max_payload_bytes",
     "pack_mask",
+    "sorted_cell_indices",
     "unpack_mask",
     "varint_sizes",
 ]

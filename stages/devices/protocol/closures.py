@@ -13,7 +13,13 @@ from numpy.typing import ArrayLike
 from .masks import bitmap_bytes, pack_mask, unpack_mask
 from .messages import MAX_CELLS, Encoding, ProtocolError
 
-__all__ = ["closure_sizes", "decode_closures", "encode_closures", "varint_sizes"]
+__all__ = [
+    "closure_sizes",
+    "decode_closures",
+    "encode_closures",
+    "sorted_cell_indices",
+    "varint_sizes",
+]
 
 MAX_VARINT_BYTES = 5  # a uint32 needs at most 5 LEB128 bytes
 
@@ -63,13 +69,24 @@ def _varint_decode(data: bytes) -> np.ndarray:
     return np.add.reduceat(parts, starts)
 
 
-def _as_sorted_indices(cell_indices: ArrayLike, n_cells: int) -> np.ndarray:
+def sorted_cell_indices(cell_indices: ArrayLike, n_cells: int) -> np.ndarray:
+    """Sorted unique row-major cell indices from indices (any order, duplicates allowed)
+    or from a boolean mask of ``n_cells`` elements.
+
+    Returns
+    -------
+    ndarray of int64, shape (n,)
+
+    Raises
+    ------
+    ValueError
+        If a mask has the wrong size, indices are not integers or lie outside
+        ``[0, n_cells)``.
+    """
     idx = np.asarray(cell_indices)
     if idx.dtype == bool:
         if idx.size != n_cells:
-            raise ValueError(
-                f"a boolean closure mask must have {n_cells} elements, got {idx.size}."
-            )
+            raise ValueError(f"a boolean cell mask must have {n_cells} elements, got {idx.size}.")
         return np.flatnonzero(idx.ravel())
     if idx.size == 0:
         return np.zeros(0, dtype=np.int64)
@@ -135,7 +152,7 @@ def closure_sizes(cell_indices: ArrayLike, n_cells: int) -> dict[Encoding, int]:
         ``{Encoding.INDICES: 1 + sum L(d_k), Encoding.RUNS: 1 + sum L(g_j) + L(len_j - 1),
         Encoding.BITMAP: 1 + ceil(n_cells / 8)}`` with ``L`` the LEB128 length.
     """
-    idx = _as_sorted_indices(cell_indices, n_cells)
+    idx = sorted_cell_indices(cell_indices, n_cells)
     return _sizes(idx, n_cells)
 
 
@@ -179,7 +196,7 @@ def encode_closures(
     """
     if not 0 < n_cells <= MAX_CELLS:
         raise ValueError(f"n_cells must be in (0, {MAX_CELLS}], got {n_cells}.")
-    idx = _as_sorted_indices(cell_indices, n_cells)
+    idx = sorted_cell_indices(cell_indices, n_cells)
     if encoding is None:
         sizes = _sizes(idx, n_cells)
         best = min(sizes, key=lambda enc: (sizes[enc], int(enc)))
