@@ -78,7 +78,7 @@ def test_motion_layers_reading():
 
 
 def test_layers_that_move_alike_merge_into_the_larger():
-    from stages.deblur.layers import _merge_alike
+    from stages.deblur.layers.labels import merge_alike as _merge_alike
 
     label = np.zeros((10, 10), np.int32)
     label[:, 6:] = 1  # 40 points at (40, 10)
@@ -236,15 +236,15 @@ def _ring(truth: np.ndarray, r: int) -> np.ndarray:
 def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
     # The working grid (64 px here, 2.5 capture px a cell) puts the object's boundary a
     # few pixels off; the full-resolution evidence in a band about it moves it back.
-    from stages.deblur import layers
-    from stages.deblur.layers import _refine_boundaries
+    from stages.deblur.layers import estimate as layers
+    from stages.deblur.layers.labels import refine_boundaries as _refine_boundaries
 
     cap = _vet(builtin_chart(160, 128), "object:40,32,80,64:40,10", seed=0)
     truth = np.any(cap.truth_motion != 0, axis=2)
     ring = _ring(truth, 4)
     monkeypatch.setattr(layers, "MAX_WORK_PX", 64)
     refined = estimate_layers(cap)
-    monkeypatch.setattr(layers, "_refine_boundaries", lambda lum, noise, lab, v, c: lab)
+    monkeypatch.setattr(layers, "refine_boundaries", lambda lum, noise, lab, v, c: lab)
     coarse = estimate_layers(cap)
     wrong = {
         name: int((ring & (truth != np.any(e.velocity != 0, axis=2))).sum())
@@ -254,7 +254,7 @@ def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
     # Directly: labels eroded, dilated or shifted by 3 px come back towards the truth.
     import cv2
 
-    from stages.deblur.layers import _rate_frames
+    from stages.deblur.layers.bins import rate_frames as _rate_frames
 
     lum, noise, _valid = _rate_frames(cap)
     centres = cap.measure_times.mean(axis=1)
@@ -274,7 +274,7 @@ def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
 
 
 def test_layers_no_pixel_keeps_are_dropped():
-    from stages.deblur.layers import _kept_layers
+    from stages.deblur.layers.labels import kept_layers as _kept_layers
 
     vels = np.array([[0.0, 0.0], [5.0, 0.0], [40.0, 10.0]], np.float32)
     label, kept = _kept_layers(np.array([[0, 2], [2, 0]]), vels)
@@ -286,15 +286,15 @@ def test_a_candidate_layer_no_point_keeps_leaves_a_still_estimate(monkeypatch):
     # The flow votes give a moving candidate, but no point shows evidence for it (here:
     # the track evidence is withheld). The estimate is then the still scene (this once
     # crashed in the second assignment, with no moving layer).
-    from stages.deblur import layers
+    from stages.deblur.layers import estimate, labels
 
     cap = _vet(builtin_chart(128, 96), "object:32,24,64,48:40,10", seed=0)
     monkeypatch.setattr(
-        layers, "_track_score", lambda lv, *a, **k: np.zeros(lv.shape[1:], np.float32)
+        labels, "track_score", lambda lv, *a, **k: np.zeros(lv.shape[1:], np.float32)
     )
     calls = []
-    assign = layers._assign
-    monkeypatch.setattr(layers, "_assign", lambda *a: calls.append(len(a[2])) or assign(*a))
+    assign = estimate.assign_labels
+    monkeypatch.setattr(estimate, "assign_labels", lambda *a: calls.append(len(a[2])) or assign(*a))
     est = estimate_layers(cap)
     assert calls == [2]  # one moving candidate, assigned once, kept by no point
     assert np.all(est.velocity == 0) and est.layer_velocities.tolist() == [[0.0, 0.0]]
@@ -303,7 +303,7 @@ def test_a_candidate_layer_no_point_keeps_leaves_a_still_estimate(monkeypatch):
 def test_visibility_hides_the_background_behind_a_moving_layer():
     # A 2-px object layer moving right at 10 px/s over a still background: in a bin
     # centred at t = 0.5 it sits 5 px right, hiding the background points there.
-    from stages.deblur.layers import _visible
+    from stages.deblur.layers.model_check import visible_points as _visible
 
     label = np.zeros((6, 20), np.int32)
     label[:, 4:6] = 1
