@@ -18,8 +18,8 @@ import numpy as np
 from .encoding import check_exposure_gamma, encode, fit_to_gamut
 from .radiance import check_level, estimate_white, luminance, sanitize
 
-#: OpenCV's tone mappers take logs of luminance floored at this value.
-_OPENCV_LOG_FLOOR = 1e-4
+#: OpenCV's tone mappers take logs of luminance floored at this value (relative to white).
+OPENCV_LOG_FLOOR = 1e-4
 
 
 def pad_for_opencv(rgb: np.ndarray, min_size: int) -> np.ndarray:
@@ -92,7 +92,8 @@ def opencv_tonemap(
     gamma: float,
     white: float | None,
     min_size: int = 1,
-    output_percentile: float = 100.0,
+    pre: Callable[[np.ndarray], np.ndarray] | None = None,
+    post: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Run an OpenCV tone mapper on robustly normalised, sanitised RGB.
 
@@ -100,8 +101,11 @@ def opencv_tonemap(
     compute luminance with ``COLOR_RGB2GRAY`` (channel 0 weighted as red), so RGB is
     passed in its own order. They stretch their input linearly so that its darkest
     sample is 0 (made a pure scaling here, see :func:`pad_for_opencv`) and their output
-    to [0, 1] (redone here, see :func:`stretch`). Their gamma is set to 1 and applied
-    here, after the display-side exposure.
+    to [0, 1] (redone here, see :func:`stretch`). ``pre``, if given, maps the radiance
+    normalised to white (H, W, 3, in [0, 1]) before OpenCV sees it, and ``post`` maps
+    OpenCV's stretched, display-linear (H, W, 3) result (an operator's own display
+    normalisation).
+    Their gamma is set to 1 and applied here, after the display-side exposure.
     """
     exposure, gamma = check_exposure_gamma(exposure, gamma)
     white = check_level("white", white)
@@ -120,12 +124,15 @@ def opencv_tonemap(
         return np.zeros(shape, dtype=np.float32)
     if channels == 1:
         rgb = np.repeat(rgb, 3, axis=2)
-    scaled = np.ascontiguousarray(fit_to_gamut(rgb * np.float32(1.0 / white)))
+    scaled = fit_to_gamut(rgb * np.float32(1.0 / white))
+    if pre is not None:
+        scaled = pre(scaled)
+    scaled = np.ascontiguousarray(scaled, dtype=np.float32)
     h, w = scaled.shape[:2]
     import cv2
 
     gray = cv2.cvtColor(scaled, cv2.COLOR_RGB2GRAY)  # what OpenCV's operators look at
-    log_gray = np.log(np.maximum(gray, _OPENCV_LOG_FLOOR))
+    log_gray = np.log(np.maximum(gray, OPENCV_LOG_FLOOR))
     # Without luminance contrast that OpenCV can see (its logs floor at 1e-4) Reinhard
     # returns NaN and Mantiuk fails an assertion: show the scaled radiance then.
     display = scaled
@@ -143,10 +150,8 @@ def opencv_tonemap(
             )
         else:
             display = stretch(mapped[:h, :w])
-            if output_percentile < 100.0:
-                level = float(np.percentile(luminance(display), output_percentile))
-                if level > 0.0:
-                    display = display * np.float32(1.0 / level)
+            if post is not None:
+                display = post(display)
     if channels == 1:
         display = display.mean(axis=2, keepdims=True, dtype=np.float32)
     display = display * np.float32(2.0**exposure)
