@@ -7,7 +7,7 @@ import pytest
 
 from stages.deblur import deblur
 from stages.deblur.joint import moving_support
-from stages.deblur.layers import estimate_layers
+from stages.deblur.layers import LAYERED_MISS_SHARE, estimate_layers
 from stages.deblur.operator import apply, blur_matrix, motion_layers, vet_windows
 from stages.hdr_static import hdr_static
 from stages.metrics import stops_error
@@ -321,8 +321,16 @@ def test_visibility_hides_the_background_behind_a_moving_layer():
         (builtin_interior, "none", True),
         (builtin_interior, "translate:30,0", True),
         (builtin_interior, "object:40,32,80,64:40,10", True),
+        (builtin_interior, "rotate:4", False),
         (builtin_interior, "rotate:6", False),
         (builtin_interior, "rotate:-10", False),
+        # A global translation of sharp-edged flat patches: sampled nearest-neighbour, the
+        # bins of the one true velocity missed each other by up to half a pixel at every
+        # edge, and the dense field seemed to explain a large share of what it missed.
+        (builtin_chart, "translate:20,0", True),
+        (builtin_chart, "translate:-15,8", True),
+        (builtin_chart, "rotate:4", False),
+        (builtin_chart, "rotate:6", False),
         # Still: the smoothed dense field agrees a hair better than no motion, so the
         # share of that hair the layers (here, no motion) miss is 1.0; motion explains
         # too little of the bins (LAYERED_MIN_GAIN) for that to reject anything.
@@ -338,9 +346,32 @@ def test_the_model_check_rejects_only_motions_that_are_not_layered(make, motion,
     if motion == "none":
         assert est.check.zero - est.check.dense < 0.05
     elif fits:
-        assert est.check.missed_share < 0.05
+        assert est.check.missed_share < 0.0  # the layers explain the bins best
     else:
-        assert est.check.missed_share > 0.15
+        assert est.check.missed_share > 2 * LAYERED_MISS_SHARE
+
+
+@pytest.mark.parametrize("shift", [0.0, 0.25, 0.5])
+def test_the_layer_cost_of_noise_does_not_depend_on_the_shift(shift):
+    # Bins of pure noise (a flat scene): every velocity explains them equally. Bilinear
+    # resampling at a fractional shift averages the noise down (to half its standard
+    # deviation half-way between four pixels); the cost normalises by that, so a
+    # fractional velocity gains nothing over a whole-pixel one.
+    from stages.deblur.layers.alignment import interpolation_noise, layer_cost
+
+    rng = np.random.default_rng(0)
+    lv = rng.normal(0.0, 0.1, (8, 64, 64)).astype(np.float32)
+    slv = np.full_like(lv, 0.1)
+    centres = np.arange(1, 9, dtype=np.float64)
+    v = np.array([shift, shift])  # px/s: bin b is shifted by shift * b in x and y
+    noise = interpolation_noise(v, centres, 64, 64)
+    f = np.mod(shift * centres, 1.0)
+    expected = np.sqrt(((1 - f) ** 2 + f**2) ** 2)
+    np.testing.assert_allclose(noise[:, 10, 10], expected, rtol=1e-5)
+    inner = (slice(12, -12), slice(12, -12))
+    still = float(layer_cost(lv, slv, np.zeros(2), centres, trunc=25.0)[inner].mean())
+    moved = float(layer_cost(lv, slv, v, centres, trunc=25.0)[inner].mean())
+    assert moved == pytest.approx(still, rel=0.06)
 
 
 def test_deblur_of_a_rotation_starts_from_dense_flow_and_beats_hdr_static():

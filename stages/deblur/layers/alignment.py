@@ -80,17 +80,39 @@ def track_score(lv, slv, v, centres, trunc=9.0):
     return per_bin * np.float32(0.5 * (len(centres) - 1))
 
 
-def layer_cost(lv, slv, v, centres, trunc=9.0, nearest=True, visible=None):
+def interpolation_noise(v: np.ndarray, centres: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Noise of bilinearly resampled bins relative to the samples', per bin, (B, H, W).
+
+    A bilinear sample at fractional offsets ``(fx, fy)`` from its pixel is a weighted
+    mean of four independent samples of equal noise, whose standard deviation is
+    ``sqrt(((1 - fx)**2 + fx**2) ((1 - fy)**2 + fy**2))`` times theirs: 1 at whole-pixel
+    shifts, 1/2 half-way between four pixels.
+    """
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    vx, vy = components(v)
+    out = np.empty((len(centres), h, w), np.float32)
+    for b, c in enumerate(centres):
+        fx = np.mod(xx + vx * np.float32(c), np.float32(1.0))
+        fy = np.mod(yy + vy * np.float32(c), np.float32(1.0))
+        out[b] = np.sqrt(((1 - fx) ** 2 + fx**2) * ((1 - fy) ** 2 + fy**2))
+    return out
+
+
+def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None):
     """Per-point truncated chi-square of the compensated bins about their median, per bin.
 
-    Only the bins in which the point is still inside the image (and ``visible``, (B, H,
-    W) bool, if given) are evidence; each other bin counts as a consistent one (cost 1,
-    the expectation of a chi-square term), so that a layer gains nothing from points it
-    moves off the image or behind another layer.
+    The bins are resampled bilinearly (a sharp edge moving a fractional number of pixels
+    per bin stays aligned) and each residual is normalised by the noise of its resampled
+    value (:func:`interpolation_noise`), so that noise scores alike whatever the shift:
+    neither whole-pixel nor fractional velocities are favoured where the bins hold only
+    noise. Only the bins in which the point is still inside the image (and ``visible``,
+    (B, H, W) bool, if given) are evidence; each other bin counts as a consistent one
+    (cost 1, the expectation of a chi-square term), so that a layer gains nothing from
+    points it moves off the image or behind another layer. Returns (H, W) float32.
     """
-    comp = compensated(lv, v, centres, nearest)
-    sig = compensated(slv, v, centres, nearest)
+    comp = compensated(lv, v, centres)
     h, w = lv.shape[1:]
+    sig = compensated(slv, v, centres) * interpolation_noise(v, centres, h, w)
     ins = inside(v, centres, h, w)
     if visible is not None:
         ins &= visible

@@ -10,8 +10,9 @@ from .alignment import layer_cost
 
 #: The layered model is rejected when the dense long-baseline field explains this share
 #: (or more) of what motion explains in the bins that the layers leave unexplained
-#: (:func:`layered_model_check`).
-LAYERED_MISS_SHARE = 0.1
+#: (:func:`layered_model_check`). Where the layers describe the motion they explain the
+#: bins better than the noisy dense field, and the share is negative.
+LAYERED_MISS_SHARE = 0.05
 #: ... and when motion explains at least this much of the bins at all (mean truncated
 #: chi-square per bin and point, confidence-weighted; a still scene explains nothing).
 LAYERED_MIN_GAIN = 0.05
@@ -24,7 +25,7 @@ class ModelCheck:
     """How well motion fields explain the measuring bins (:func:`layered_model_check`).
 
     Costs are confidence-weighted means of the truncated chi-square of the motion-
-    compensated bins about their median, per bin and point (about 0.85 where the bins
+    compensated bins about their median, per bin and point (a little under 1 where the bins
     hold only noise); lower explains the bins better.
     """
 
@@ -77,8 +78,8 @@ def layered_model_check(
     and deblurs along wrong paths, which is worse than not deblurring. The dense
     long-baseline field follows any smooth motion, noisily. Both fields (and no motion)
     are scored by how well the bins, resampled along them, agree
-    (:func:`layer_cost`, nearest-neighbour so that noise scores alike under every
-    field), averaged over the confident points away from the border (points whose paths
+    (:func:`.alignment.layer_cost`, whose noise normalisation makes noise score alike
+    under every field), averaged over the confident points away from the border (points whose paths
     leave the image are scored by neither). The layered model is rejected when the
     dense field explains at least :data:`LAYERED_MISS_SHARE` of the motion's effect that
     the layers miss, ``(layered - dense) / (zero - dense)``, and motion explains at

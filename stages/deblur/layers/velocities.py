@@ -39,8 +39,7 @@ def refine_velocity(
         key = (round(float(c[0]), 6), round(float(c[1]), 6))
         if key not in cache:
             cache[key] = float(
-                (layer_cost(lv_c, slv_c, c, centres, trunc=25.0, nearest=False) * wt_c).sum()
-                / total
+                (layer_cost(lv_c, slv_c, c, centres, trunc=25.0) * wt_c).sum() / total
             )
         return cache[key]
 
