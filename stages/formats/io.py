@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from ..errors import FormatError, InputError
+from .names import display_format, format_for_output
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 ZIP_MAGIC = b"PK\x03\x04"
@@ -42,18 +43,6 @@ def sniff(path: str | Path) -> str:
     if not head:
         raise FormatError(f"{path}: file is empty")
     raise FormatError(f"{path}: not an OpenEXR or NumPy .npz file (unrecognised magic bytes)")
-
-
-def format_for_output(path: str, default: str = "exr") -> str:
-    """Pick the output format from the name's extension (``-`` gives ``default``)."""
-    if path == "-":
-        return default
-    ext = Path(path).suffix.lower()
-    if ext == ".exr":
-        return "exr"
-    if ext == ".npz":
-        return "npz"
-    raise InputError(f"{path}: unsupported output extension {ext or '(none)'!r}; use .exr or .npz")
 
 
 @contextlib.contextmanager
@@ -131,8 +120,6 @@ def check_output(path: str | Path | None, kind: str = "data", parents: bool = Tr
     if kind == "data":
         format_for_output(str(target))
     elif kind == "display":
-        from .images import display_format  # images writes through this module
-
         display_format(target)
     else:
         raise ValueError(f"unknown output kind {kind!r}")

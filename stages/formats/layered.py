@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError, InputError
-from .io import atomic_output, check_size, format_for_output, sniff, spooled_input
+from .io import atomic_output, check_size, sniff, spooled_input
+from .names import format_for_output
 
 META_ATTR = "vet:meta"
 KIND_ATTR = "vet:kind"
