@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data sample-hdr clean
+.PHONY: demo test test-slow fuzz bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -35,6 +35,12 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
+
+# A longer fuzz campaign than `make test` runs (issue 22): CASES mutated files of each kind
+# through every command that reads them; prints counts per reader and outcome.
+CASES ?= 300
+fuzz: $(STAMP)
+	$(BIN)/python -m tests.fuzz $(CASES) 2
 
 bench: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.run

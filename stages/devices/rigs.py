@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..formats.schema import check_rig_file
 from ..rig import RigParams
 from .cameras import Camera, EmulatedMeasurementCamera, EmulatedVETCamera, OpenCVCamera
 from .lcos import LCoSDevice, SerialLCoS
@@ -237,6 +238,7 @@ def load_rig_file(path: str | Path) -> dict[str, Any]:
             raise InputError(
                 f'{p}: [{cam}] needs source = "/dev/videoN" (or a video / frame folder)'
             )
+    check_rig_file(data, str(p))
     return data
 
 

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError, InputError
-from . import limits
+from . import limits, schema
 from .io import atomic_output, sniff, spooled_input
 from .names import format_for_output
 
@@ -106,6 +106,15 @@ def write_exr(path: Path, data: Layered, compression: str = "zip") -> None:
         out.close()
 
 
+def _last_error(geterror: Callable[[], str], default: str) -> str:
+    """The last line of an OpenImageIO error (which may quote undecodable header bytes)."""
+    try:
+        lines = geterror().strip().splitlines()
+    except UnicodeDecodeError:
+        return "the header holds bytes that are not text"
+    return lines[-1] if lines else default
+
+
 def read_oiio(
     path: str | Path,
     what: str,
@@ -125,26 +134,38 @@ def read_oiio(
     oiio = _oiio()
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        msg = oiio.geterror().strip().splitlines()
-        raise FormatError(f"{what}: not a readable image ({msg[-1] if msg else 'unknown format'})")
+        msg = _last_error(oiio.geterror, "unknown format")
+        raise FormatError(f"{what}: not a readable image ({msg})")
     try:
-        spec = inp.spec()
-        w, h, nch = int(spec.width), int(spec.height), int(spec.nchannels)
-        if w <= 0 or h <= 0 or nch <= 0:
-            raise FormatError(f"{what}: image has no pixels")
-        if nch > MAX_CHANNELS:
-            raise FormatError(f"{what}: image has {nch} channels, over the limit of {MAX_CHANNELS}")
-        limits.check_declared(w * h * nch * 4, Path(path).stat().st_size, what)
-        values = {a: spec.get_string_attribute(a, "") for a in attrs}
-        if before_pixels is not None:
-            before_pixels(values, h, w)
-        pixels = inp.read_image(0, 0, 0, nch, "float")
-        if pixels is None:
-            msg = inp.geterror().strip().splitlines()
-            raise FormatError(f"{what}: pixel data unreadable ({msg[-1] if msg else 'truncated?'})")
-        names = list(spec.channelnames)
+        return _read_oiio_pixels(inp, path, what, attrs, before_pixels)
+    except UnicodeDecodeError:
+        raise FormatError(f"{what}: header holds names or text that are not UTF-8") from None
     finally:
         inp.close()
+
+
+def _read_oiio_pixels(
+    inp: Any,
+    path: str | Path,
+    what: str,
+    attrs: tuple[str, ...],
+    before_pixels: Callable[[dict[str, str], int, int], None] | None,
+) -> tuple[np.ndarray, list[str], dict[str, str]]:
+    spec = inp.spec()
+    w, h, nch = int(spec.width), int(spec.height), int(spec.nchannels)
+    if w <= 0 or h <= 0 or nch <= 0:
+        raise FormatError(f"{what}: image has no pixels")
+    if nch > MAX_CHANNELS:
+        raise FormatError(f"{what}: image has {nch} channels, over the limit of {MAX_CHANNELS}")
+    limits.check_declared(w * h * nch * 4, Path(path).stat().st_size, what)
+    values = {a: spec.get_string_attribute(a, "") for a in attrs}
+    if before_pixels is not None:
+        before_pixels(values, h, w)
+    pixels = inp.read_image(0, 0, 0, nch, "float")
+    if pixels is None:
+        msg = _last_error(inp.geterror, "truncated?")
+        raise FormatError(f"{what}: pixel data unreadable ({msg})")
+    names = list(spec.channelnames)
     return np.asarray(pixels, dtype=np.float32).reshape(h, w, nch), names, values
 
 
@@ -157,6 +178,7 @@ def read_exr(path: Path, what: str | None = None) -> Layered:
     def check(values: dict[str, str], h: int, w: int) -> None:
         if values[META_ATTR]:
             meta.update(_parse_meta(values[META_ATTR], what))
+            schema.check_meta(meta, what)
         _check_declared_size(declared_size(meta), (h, w), "", what)
 
     pixels, names, _ = read_oiio(path, what, (META_ATTR,), check)
@@ -292,6 +314,7 @@ def read_npz(path: Path, what: str | None = None) -> Layered:
         if len(tables) != len(_NPZ_TABLES):
             raise FormatError(f"{what}: .npz is not a vet file (no __meta__ / __channels__)")
         meta = _parse_meta(tables["__meta__.npy"], what, zf)
+        schema.check_meta(meta, what)
         channels = _npz_table(zf, tables["__channels__.npy"], what)
         if not isinstance(channels, dict):
             raise FormatError(f"{what}: corrupt channel table (not a JSON object)")
@@ -376,11 +399,25 @@ def _json_default(o: Any) -> Any:
 
 
 def read_layered(path: str | Path) -> Layered:
-    """Read a vet file (EXR or npz, sniffed by magic bytes); ``-`` reads stdin."""
+    """Read a vet file (EXR or npz, sniffed by magic bytes); ``-`` reads stdin.
+
+    The metadata is validated against :mod:`stages.formats.schema` before the pixels are
+    read, and the layers against the metadata after.
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file.
+    FormatError
+        Not a vet or image file, over a limit of :mod:`stages.formats.limits`, or
+        metadata outside the schema (one line naming the field and the allowed range).
+    """
     what = "standard input" if str(path) == "-" else str(path)
     with spooled_input(path) as real:
         kind = sniff(real)
-        return read_exr(real, what) if kind == "exr" else read_npz(real, what)
+        data = read_exr(real, what) if kind == "exr" else read_npz(real, what)
+    schema.check_layers(data.meta, data.layers, data.channels, what)
+    return data
 
 
 def write_layered(path: str | Path, data: Layered, fmt: str | None = None) -> None:

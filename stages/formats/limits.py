@@ -115,20 +115,21 @@ def _depth(value: Any) -> int:
     return deepest
 
 
-def parse_json(text: str | bytes, what: str, kind: str = "metadata") -> Any:
+def parse_json(
+    text: str | bytes, what: str, kind: str = "metadata", max_bytes: int | None = None
+) -> Any:
     """Parse JSON text that a file carries, bounded in size and nesting depth.
 
     Raises
     ------
     FormatError
-        Text over :data:`MAX_META_BYTES`, not JSON, not UTF-8, or nested deeper than
+        Text over ``max_bytes`` (default :data:`MAX_META_BYTES`), not JSON, not UTF-8, or nested deeper than
         :data:`MAX_META_DEPTH` (one line naming ``kind``; never a RecursionError).
     """
     size = len(text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text)
-    if size > MAX_META_BYTES:
-        raise FormatError(
-            f"{what}: {kind} is {size} bytes, over the limit of {MAX_META_BYTES} bytes"
-        )
+    limit = MAX_META_BYTES if max_bytes is None else max_bytes
+    if size > limit:
+        raise FormatError(f"{what}: {kind} is {size} bytes, over the limit of {limit} bytes")
     try:
         value = json.loads(text)
     except RecursionError:
