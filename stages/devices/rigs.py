@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..formats.schema import check_rig_file
 from ..rig import RigParams
 from .cameras import Camera, EmulatedMeasurementCamera, EmulatedVETCamera, OpenCVCamera
 from .lcos import LCoSDevice, SerialLCoS
@@ -232,14 +233,6 @@ def open_sim_rig(opts: SimOptions) -> Rig:
     )
 
 
-_LCOS_NUMBERS = (
-    ("baudrate", int, 1, 1e9),
-    ("link_bps", (int, float), 1, 1e12),
-    ("ack_timeout_s", (int, float), 1e-3, 60),
-    ("max_retries", int, 0, 100),
-)
-
-
 def load_rig_file(path: str | Path) -> dict[str, Any]:
     """Parse and check a rig TOML file."""
     if sys.version_info >= (3, 11):
@@ -259,10 +252,6 @@ def load_rig_file(path: str | Path) -> dict[str, Any]:
             raise InputError(f"{p}: rig file lacks the [{section}] section")
     if "url" not in data["lcos"]:
         raise InputError(f'{p}: [lcos] needs url = "/dev/ttyACM0" (any pyserial URL)')
-    for key, kind, lo, hi in _LCOS_NUMBERS:
-        v = data["lcos"].get(key)
-        if v is not None and (isinstance(v, bool) or not isinstance(v, kind) or not lo <= v <= hi):
-            raise InputError(f"{p}: [lcos] {key} must be a number in [{lo:g}, {hi:g}], got {v!r}")
     for cam in ("measurement_camera", "vet_camera"):
         backend = data[cam].get("backend", "opencv")
         if backend not in CAMERA_BACKENDS:
@@ -273,6 +262,7 @@ def load_rig_file(path: str | Path) -> dict[str, Any]:
             raise InputError(
                 f'{p}: [{cam}] needs source = "/dev/videoN" (or a video / frame folder)'
             )
+    check_rig_file(data, str(p))
     return data
 
 
