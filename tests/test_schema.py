@@ -210,3 +210,17 @@ def test_rig_params_refuse_too_many_subframes():
 def test_every_model_declares_a_json_schema():
     for model in (*schema.META_MODELS.values(), schema.RigFile, schema.Manifest):
         assert model.model_json_schema()["properties"]
+
+
+def test_provenance_inputs_are_file_records_or_names(tmp_path, capture_meta):
+    """What stages.provenance records (path, bytes, sha256) and a rig's name both pass;
+    a record with a malformed hash is refused naming the field."""
+    _, source = capture_meta
+    good = {"path": "cap.exr", "bytes": 12, "sha256": "ab" * 32}
+    chain = [{"step": "capture", "inputs": ["sim"]}, {"step": "x", "inputs": [good]}]
+    ok = _mutated(tmp_path, source, _set("provenance", chain), "ok.npz")
+    assert read_layered(ok).meta["provenance"][1]["inputs"] == [good]
+    chain[1]["inputs"] = [{"path": "cap.exr", "sha256": "xyz"}]
+    bad = _mutated(tmp_path, source, _set("provenance", chain), "bad.npz")
+    with pytest.raises(FormatError, match=r"provenance\.1\.inputs\.0"):
+        read_layered(bad)

@@ -105,14 +105,23 @@ class Rig(BaseModel):
         return self
 
 
+class InputRecord(_Open):
+    """A file a step read (:func:`stages.provenance.input_record`)."""
+
+    path: Str
+    bytes: Annotated[int, Field(strict=True, ge=0)] | None = None
+    sha256: Annotated[str, Field(strict=True, pattern=r"^[0-9a-f]{64}$")] | None = None
+
+
 class Provenance(_Open):
-    """One link of the provenance chain (:func:`~stages.formats.capture.provenance_entry`)."""
+    """One link of the provenance chain (:func:`~stages.formats.capture.provenance_entry`):
+    its inputs are file records or plain names (a capture's rig)."""
 
     step: Str
     software: Str | None = None
     command: Str | None = None
     time: Str | None = None
-    inputs: list[Str] = []
+    inputs: list[InputRecord | Str] = []
     params: dict[str, Any] = {}
 
 
