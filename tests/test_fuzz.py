@@ -4,6 +4,10 @@ either succeed or exit 1 with one clean line. See :mod:`tests.fuzz` for the muta
 
 from __future__ import annotations
 
+import struct
+import warnings
+import zipfile
+
 import numpy as np
 import pytest
 
@@ -96,3 +100,35 @@ def test_motion_field_of_absurd_speed_is_refused(tmp_path):
     write_layered(tmp_path / "m.npz", field)
     with pytest.raises(FormatError, match=r"motion: velocities up to 1e\+30 px/s; allowed"):
         read_layered(tmp_path / "m.npz")
+
+
+def _npy_with_header(header: str) -> bytes:
+    raw = header.encode("latin1")
+    raw += b" " * (64 - (10 + len(raw) + 1) % 64) + b"\n"
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(raw)) + raw
+
+
+def test_npz_member_with_unterminated_header_is_refused(tmp_path):
+    # Found by the fuzzer: numpy parses .npy headers with tokenize, whose TokenError is no
+    # ValueError ("internal error (TokenError ...)" in vet info and vet batch's discovery).
+    from stages.batch.discover import UNREADABLE, probe_kind
+
+    path = tmp_path / "m.npz"
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("__meta__.npy", _npy_with_header("{'descr': '<U9', 'shape': (4,"))
+        zf.writestr("__channels__.npy", _npy_with_header("{}"))
+    with pytest.raises(FormatError, match="member '__meta__.npy' is not a NumPy array"):
+        read_layered(path)
+    assert probe_kind(path) == UNREADABLE
+
+
+def test_rig_homography_that_overflows_is_refused_without_warnings(tmp_path):
+    # Found by the fuzzer: a homography of 1e308 printed numpy's overflow warning lines
+    # above the error.
+    from stages.formats.schema import Rig, validate
+
+    h = [[1e308, 0, 0], [0, 1e308, 0], [0, 0, 1]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(FormatError, match="rig: homography: maps LCoS corners to infinity"):
+            validate(Rig, {"homography": h}, "rig")
