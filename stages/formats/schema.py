@@ -164,7 +164,8 @@ class HDRMeta(_FileMeta):
     """An HDR image's metadata (:mod:`stages.formats.hdr`)."""
 
     kind: Literal["hdr"]
-    units: Str | None = None
+    # scene: simulated captures' scene units; DN/s: recorded ones; unknown: foreign images.
+    units: Literal["scene", "DN/s", "unknown"] | None = None
     rig: Rig | None = None
     mask_codes: dict[Annotated[str, Field(pattern=r"^[0-9]{1,3}$")], Str] | None = None
     display_referred: bool | None = None
