@@ -289,8 +289,23 @@ class Campaign:
             root.mkdir()
             cap = self.mutant("capture", rng, f"batchcapture{i}")
             cap.rename(root / f"a{cap.suffix}")
-            self.cli("batch", ["batch", str(root), "-o", str(out / f"b{i}"), "-j", "1",
-                               "--steps", "hdr-static"], f"batch case {i}", stdout_ok=True)  # fmt: skip
+            args = [
+                "batch",
+                str(root),
+                "-o",
+                str(out / f"b{i}"),
+                "-j",
+                "1",
+                "--steps",
+                "hdr-static",
+            ]
+            self.cli("batch", args, f"batch case {i}", stdout_ok=True)
+            # The same batch again over a damaged manifest: set aside with a warning.
+            manifest = out / f"b{i}" / ".vet-batch-manifest.json"
+            if manifest.is_file():
+                damaged = mutate_meta(json.loads(manifest.read_text()), rng)
+                manifest.write_text(json.dumps(damaged))
+                self.cli("batch (manifest)", args, f"manifest case {i}", stdout_ok=True)
 
     def mutant(self, kind: str, rng: random.Random, name: str) -> Path:
         from stages.formats.layered import write_layered
