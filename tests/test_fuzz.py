@@ -46,6 +46,7 @@ def test_seeds_pass_every_reader(tmp_path):
 def test_fuzz_every_reader_fails_cleanly(tmp_path):
     camp = _campaign(tmp_path, seed=1, cases=FAST_CASES, batch_cases=2)
     assert not camp.bad, "\n".join(camp.bad[:20])
+    assert not camp.warned, "\n".join(camp.warned[:20])
     readers = {r for r, _ in camp.counts}
     assert len(readers) == 14
     assert sum(n for (_, o), n in camp.counts.items() if o == "ok") > 50
