@@ -377,34 +377,34 @@ def _parse_meta(source: Any, what: str, zf: zipfile.ZipFile | None = None) -> di
     return meta
 
 
-def declared_size(meta: dict[str, Any]) -> tuple[int, int] | None:
-    """The image size ``(height, width)`` that a file's metadata declares, if any.
+def declared_size(meta: dict[str, Any]) -> tuple[int, int, str] | None:
+    """The image size that a file's metadata declares, if any: ``(height, width, field)``.
 
     From ``sensor_size`` ``[width, height]`` (calibrations) or ``rig.sensor_size``
     (captures, HDR images made from them); None when neither is a pair of positive ints
     (the schema reports malformed ones by name).
     """
     rig = meta.get("rig")
-    for source in (
-        meta.get("sensor_size"),
-        rig.get("sensor_size") if isinstance(rig, dict) else None,
+    for field_name, source in (
+        ("sensor_size", meta.get("sensor_size")),
+        ("rig.sensor_size", rig.get("sensor_size") if isinstance(rig, dict) else None),
     ):
         if (
             isinstance(source, list)
             and len(source) == 2
             and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in source)
         ):
-            return int(source[1]), int(source[0])
+            return int(source[1]), int(source[0]), field_name
     return None
 
 
 def _check_declared_size(
-    expected: tuple[int, int] | None, size: tuple[int, int], layer: str, what: str
+    expected: tuple[int, int, str] | None, size: tuple[int, int], layer: str, what: str
 ) -> None:
-    if expected is not None and tuple(size) != expected:
+    if expected is not None and tuple(size) != expected[:2]:
         raise FormatError(
-            f"{what}: layer {layer or 'image'!r} is {size[1]}x{size[0]} pixels but the metadata declares "
-            f"a {expected[1]}x{expected[0]} sensor (sensor_size)"
+            f"{what}: {expected[2]}: {expected[1]}x{expected[0]} but layer "
+            f"{layer or 'image'!r} is {size[1]}x{size[0]} pixels; they must match"
         )
 
 
