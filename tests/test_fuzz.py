@@ -146,3 +146,39 @@ def test_info_mean_of_huge_values_does_not_overflow(tmp_path):
         warnings.simplefilter("error")
         mean = describe(tmp_path / "h.exr")["layers"]["(image)"]["mean"]
     assert mean == pytest.approx(3e38, rel=1e-6)
+
+
+def test_npz_member_needing_a_newer_zip_version_is_refused(tmp_path):
+    # Found by the fuzzer: zipfile raises NotImplementedError ("zip file version 10.9")
+    # for a member whose central directory asks for a newer zip version.
+    from stages.batch.discover import UNREADABLE, probe_kind
+
+    path = tmp_path / "c.npz"
+    field = Layered(meta={"kind": "motion", "units": "px/s"})
+    field.add("motion", np.zeros((4, 4, 2), np.float32), ["u", "v"])
+    write_layered(path, field)
+    raw = bytearray(path.read_bytes())
+    at = raw.index(b"PK\x01\x02")  # first central directory entry
+    raw[at + 6 : at + 8] = struct.pack("<H", 109)  # version needed to extract
+    path.write_bytes(bytes(raw))
+    with pytest.raises(FormatError, match="zip file version 10.9"):
+        read_layered(path)
+    assert probe_kind(path) == UNREADABLE
+
+
+def test_manifest_failure_record_of_the_wrong_type_is_set_aside(tmp_path):
+    # Found by the fuzzer: a failure whose step was a number passed the manifest check and
+    # vet batch's summary table failed on it ("internal error (TypeError ...)").
+    import json
+
+    from stages.batch.manifest import MANIFEST_NAME, Manifest
+
+    record = {
+        "input": {"path": "a.exr"},
+        "status": "failed",
+        "failure": {"step": 3, "reason": "x", "key": None},
+    }
+    data = {"format": "vet-batch-manifest", "format_version": 1, "captures": {"a.exr": record}}
+    (tmp_path / MANIFEST_NAME).write_text(json.dumps(data))
+    warning = Manifest.load(tmp_path).load_warning
+    assert "captures.a.exr.failure.step: must be a valid string" in warning

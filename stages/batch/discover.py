@@ -148,7 +148,15 @@ def probe_kind(path: str | Path) -> str | None:
             return kind or None
         if magic == ZIP_MAGIC:
             return _npz_kind(path)
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, SyntaxError, TokenError):
+    except (
+        OSError,
+        ValueError,
+        zipfile.BadZipFile,
+        EOFError,
+        SyntaxError,
+        TokenError,
+        NotImplementedError,
+    ):
         return UNREADABLE
     return UNREADABLE
 

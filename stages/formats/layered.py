@@ -230,6 +230,7 @@ MAX_CHANNELS = 1024
 _NPY_ERRORS = (
     ValueError,
     TypeError,
+    NotImplementedError,  # zipfile: a member needing a zip version or feature it lacks
     SyntaxError,
     tokenize.TokenError,
     EOFError,
@@ -309,7 +310,7 @@ def read_npz(path: Path, what: str | None = None) -> Layered:
     try:
         on_disk = Path(path).stat().st_size
         zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
         raise FormatError(f"{what}: not a valid .npz file ({exc})") from None
     with zf:
         infos = zf.infolist()

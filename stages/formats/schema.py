@@ -237,16 +237,24 @@ class ManifestInput(_Open):
 class ManifestStep(_Open):
     key: Str
     output: Str | None = None
+    version: Str | None = None
+    params: dict[str, Any] = {}
     sha256: Annotated[str, Field(strict=True, pattern=r"^[0-9a-f]{64}$")] | None = None
     size: Annotated[int, Field(strict=True, ge=0)] | None = None
     mtime_ns: Int | None = None
+
+
+class ManifestFailure(_Open):
+    step: Str
+    reason: Str
+    key: Str | None = None
 
 
 class ManifestCapture(_Open):
     input: ManifestInput
     status: Literal["ok", "failed"]
     steps: dict[str, ManifestStep] = {}
-    failure: dict[str, Any] | None = None
+    failure: ManifestFailure | None = None
 
 
 class Manifest(_Open):
