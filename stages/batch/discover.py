@@ -20,6 +20,7 @@ import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from tokenize import TokenError
 
 from ..errors import FormatError
 from ..formats.capture import CAPTURE_FILENAMES
@@ -147,7 +148,15 @@ def probe_kind(path: str | Path) -> str | None:
             return kind or None
         if magic == ZIP_MAGIC:
             return _npz_kind(path)
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError):
+    except (
+        OSError,
+        ValueError,
+        zipfile.BadZipFile,
+        EOFError,
+        SyntaxError,
+        TokenError,
+        NotImplementedError,
+    ):
         return UNREADABLE
     return UNREADABLE
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -25,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FormatError, InputError
+from ..errors import FormatError, OutputError
 from . import limits, schema
 from .io import atomic_output, sniff, spooled_input
 from .names import format_for_output
@@ -82,7 +83,10 @@ def _oiio():
     return oiio
 
 
-def write_exr(path: Path, data: Layered, compression: str = "zip") -> None:
+def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | None = None) -> None:
+    """Write ``data`` as a multi-layer float32 EXR at ``path`` (``what``: its name in
+    messages, when ``path`` is a temporary file). Raises OutputError on failure."""
+    what = what or str(path)
     oiio = _oiio()
     h, w = data.shape
     names: list[str] = []
@@ -98,10 +102,10 @@ def write_exr(path: Path, data: Layered, compression: str = "zip") -> None:
     spec.attribute(META_ATTR, json.dumps(data.meta, sort_keys=True, default=_json_default))
     out = oiio.ImageOutput.create(str(path))
     if out is None or not out.open(str(path), spec):
-        raise InputError(f"{path}: cannot write EXR ({oiio.geterror()})")
+        raise OutputError(f"{what}: cannot write EXR ({_last_error(oiio.geterror, '?')})")
     try:
         if not out.write_image(pixels):
-            raise InputError(f"{path}: cannot write EXR ({out.geterror()})")
+            raise OutputError(f"{what}: cannot write EXR ({_last_error(out.geterror, '?')})")
     finally:
         out.close()
 
@@ -221,6 +225,21 @@ _NPZ_METHODS = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED)
 MAX_CHANNELS = 1024
 
 
+#: What numpy's .npy reader and zipfile raise on damaged input (the header is parsed with
+#: tokenize and ast, which have exceptions of their own).
+_NPY_ERRORS = (
+    ValueError,
+    TypeError,
+    NotImplementedError,  # zipfile: a member needing a zip version or feature it lacks
+    SyntaxError,
+    tokenize.TokenError,
+    EOFError,
+    OSError,
+    zipfile.BadZipFile,
+    zlib.error,
+)
+
+
 def _npz_member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str):
     """``(shape, dtype, header bytes)`` of one .npy member, read without inflating its data."""
     member = info.filename
@@ -234,9 +253,11 @@ def _npz_member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str):
             else:
                 raise ValueError(f"unsupported .npy version {version}")
             header = fp.tell()
-    except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as exc:
+    except _NPY_ERRORS as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise FormatError(f"{what}: member {member!r} is not a NumPy array ({first})") from None
+    if any(int(n) < 0 for n in shape):
+        raise FormatError(f"{what}: member {member!r} declares a negative shape {shape}")
     if dtype.hasobject:
         raise FormatError(
             f"{what}: member {member[:-4]!r} holds Python objects (pickle); refusing to load"
@@ -254,7 +275,7 @@ def _npz_array(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str) -> np.ndar
     try:
         with zf.open(info) as fp:
             return np.lib.format.read_array(fp, allow_pickle=False)
-    except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as exc:
+    except _NPY_ERRORS as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise FormatError(f"{what}: corrupt .npz member {info.filename!r} ({first})") from None
 
@@ -289,7 +310,7 @@ def read_npz(path: Path, what: str | None = None) -> Layered:
     try:
         on_disk = Path(path).stat().st_size
         zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
         raise FormatError(f"{what}: not a valid .npz file ({exc})") from None
     with zf:
         infos = zf.infolist()
@@ -357,34 +378,34 @@ def _parse_meta(source: Any, what: str, zf: zipfile.ZipFile | None = None) -> di
     return meta
 
 
-def declared_size(meta: dict[str, Any]) -> tuple[int, int] | None:
-    """The image size ``(height, width)`` that a file's metadata declares, if any.
+def declared_size(meta: dict[str, Any]) -> tuple[int, int, str] | None:
+    """The image size that a file's metadata declares, if any: ``(height, width, field)``.
 
     From ``sensor_size`` ``[width, height]`` (calibrations) or ``rig.sensor_size``
     (captures, HDR images made from them); None when neither is a pair of positive ints
     (the schema reports malformed ones by name).
     """
     rig = meta.get("rig")
-    for source in (
-        meta.get("sensor_size"),
-        rig.get("sensor_size") if isinstance(rig, dict) else None,
+    for field_name, source in (
+        ("sensor_size", meta.get("sensor_size")),
+        ("rig.sensor_size", rig.get("sensor_size") if isinstance(rig, dict) else None),
     ):
         if (
             isinstance(source, list)
             and len(source) == 2
             and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in source)
         ):
-            return int(source[1]), int(source[0])
+            return int(source[1]), int(source[0]), field_name
     return None
 
 
 def _check_declared_size(
-    expected: tuple[int, int] | None, size: tuple[int, int], layer: str, what: str
+    expected: tuple[int, int, str] | None, size: tuple[int, int], layer: str, what: str
 ) -> None:
-    if expected is not None and tuple(size) != expected:
+    if expected is not None and tuple(size) != expected[:2]:
         raise FormatError(
-            f"{what}: layer {layer or 'image'!r} is {size[1]}x{size[0]} pixels but the metadata declares "
-            f"a {expected[1]}x{expected[0]} sensor (sensor_size)"
+            f"{what}: {expected[2]}: {expected[1]}x{expected[0]} but layer "
+            f"{layer or 'image'!r} is {size[1]}x{size[0]} pixels; they must match"
         )
 
 
@@ -426,6 +447,6 @@ def write_layered(path: str | Path, data: Layered, fmt: str | None = None) -> No
     data.meta["channel_order"] = {k: list(v) for k, v in data.channels.items()}
     with atomic_output(path, suffix="." + fmt) as tmp:
         if fmt == "exr":
-            write_exr(tmp, data)
+            write_exr(tmp, data, what="standard output" if str(path) == "-" else str(path))
         else:
             write_npz(tmp, data)
