@@ -290,6 +290,7 @@ def test_invalid_option_values_are_usage_errors(tmp_path, case):
         ("deblur.method=fast", "deblur method must be one of vet, paper, not 'fast'"),
         ("deblur.fuse_still=maybe", "fuse_still must be one of true, false, auto"),
         ("tonemap.exposure=nan", "tonemap exposure must be a number of stops within +/-64"),
+        ("deblur.tile=8", "deblur tile must be one of auto, none, null, an integer >= 64"),
     ],
 )
 @pytest.mark.parametrize("dry", [False, True], ids=["run", "dry-run"])
