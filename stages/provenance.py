@@ -1,10 +1,9 @@
 """The inputs a step read, recorded in the last link of a file's provenance chain.
 
-Each link (:func:`stages.formats.capture.provenance_entry`) names its inputs in
-``inputs``, a list of strings (file paths, ``-`` for standard input, or a device such
-as a capture's rig). :func:`record_inputs` sets them for a step that read files, and
-adds ``input_files``: for each input file ``{"path": str, "bytes": int, "sha256": hex
-str}`` (standard input, read once, is named but not hashed).
+Each link (:func:`stages.formats.capture.provenance_entry`) has ``inputs``: a list whose
+file entries are ``{"path": str, "bytes": int, "sha256": hex str}`` (``{"path": "-"}``
+for standard input, which cannot be read twice). A device name (a capture's rig) stays
+a plain string.
 """
 
 from __future__ import annotations
@@ -16,13 +15,13 @@ from typing import Any
 _CHUNK = 1 << 20
 
 
-def input_record(path: str | Path) -> dict[str, Any] | None:
-    """``{"path", "bytes", "sha256"}`` of the file at ``path``; None for ``-`` (stdin).
+def input_record(path: str | Path) -> dict[str, Any]:
+    """``{"path", "bytes", "sha256"}`` of the file at ``path`` (``{"path": "-"}`` for stdin).
 
     Raises OSError if the file cannot be read.
     """
     if str(path) == "-":
-        return None
+        return {"path": "-"}
     p = Path(path)
     digest = hashlib.sha256()
     size = 0
@@ -34,12 +33,11 @@ def input_record(path: str | Path) -> dict[str, Any] | None:
 
 
 def record_inputs(meta: dict[str, Any], paths: list[str | Path]) -> dict[str, Any]:
-    """Set ``inputs`` (the paths) and ``input_files`` (their records) of the last link of
-    ``meta["provenance"]``. Returns ``meta`` (changed in place); a meta without
-    provenance gets none.
+    """Set the inputs of the last link of ``meta["provenance"]`` to ``paths``' records.
+
+    Returns ``meta`` (changed in place). A meta without provenance gets none.
     """
     chain = meta.get("provenance")
     if isinstance(chain, list) and chain and isinstance(chain[-1], dict):
-        records = [r for r in (input_record(p) for p in paths) if r is not None]
-        chain[-1] = {**chain[-1], "inputs": [str(p) for p in paths], "input_files": records}
+        chain[-1] = {**chain[-1], "inputs": [input_record(p) for p in paths]}
     return meta
