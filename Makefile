@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data test-hardware sample-hdr clean
+.PHONY: demo test test-slow fuzz bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data test-hardware sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -46,6 +46,12 @@ test-hardware: $(STAMP)
 	$(BIN)/pip install --quiet 'PyGObject<3.51'
 	-ip addr show lo | grep -q 127.0.0.2 || $(SUDO) ip addr add 127.0.0.2/8 dev lo
 	VET_REQUIRE_HARDWARE=1 $(BIN)/python -m pytest -q -rs tests/test_genicam.py
+
+# A longer fuzz campaign than `make test` runs (issue 22): CASES mutated files of each kind
+# through every command that reads them; prints counts per reader and outcome.
+CASES ?= 300
+fuzz: $(STAMP)
+	$(BIN)/python -m tests.fuzz $(CASES) 2
 
 bench: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.run

@@ -191,4 +191,6 @@ def _folder_params(root: Path) -> RigParams:
             data = tomllib.load(f)
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"{toml}: not valid TOML ({exc})") from None
-    return RigParams.from_dict(dict(data.get("params", {})))
+    from ..formats.schema import check_rig_params
+
+    return RigParams.from_dict(check_rig_params(data, str(toml)))

@@ -14,6 +14,8 @@ Rig file (TOML) for real hardware::
     url = "/dev/ttyACM0"          # any pyserial URL: /dev/ttyUSB0, socket://host:port, ...
     baudrate = 115200             # optional (UARTs)
     link_bps = 12e6               # optional: the link's real rate, for ACK timeouts
+    ack_timeout_s = 0.5           # optional: silence before a frame is resent
+    max_retries = 8               # optional: resends before the capture gives up
 
     [measurement_camera]
     source = "/dev/video0"        # V4L2 device, video file, image pattern or folder (replay)
@@ -55,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..formats.schema import check_rig_file
 from ..rig import RigParams
 from .cameras import Camera, EmulatedMeasurementCamera, EmulatedVETCamera, OpenCVCamera
 from .lcos import LCoSDevice, SerialLCoS
@@ -188,7 +191,7 @@ def open_sim_rig(opts: SimOptions) -> Rig:
         seed=opts.seed,
     )
     try:
-        lcos = SerialLCoS(emu.port, link_bps=opts.link_bps)
+        lcos = SerialLCoS(emu.port, link_bps=opts.link_bps, cells=params.lcos_cells)
     except Exception:
         emu.stop()
         raise
@@ -259,6 +262,7 @@ def load_rig_file(path: str | Path) -> dict[str, Any]:
             raise InputError(
                 f'{p}: [{cam}] needs source = "/dev/videoN" (or a video / frame folder)'
             )
+    check_rig_file(data, str(p))
     return data
 
 
@@ -281,7 +285,15 @@ def open_hardware_rig(path: str | Path) -> Rig:
     data = load_rig_file(path)
     params = RigParams.from_dict(dict(data.get("params", {})))
     lc = data["lcos"]
-    lcos = SerialLCoS(str(lc["url"]), baudrate=lc.get("baudrate"), link_bps=lc.get("link_bps"))
+    link = {k: lc[k] for k in ("ack_timeout_s", "max_retries") if k in lc}
+    lcos = SerialLCoS(
+        str(lc["url"]),
+        baudrate=lc.get("baudrate"),
+        link_bps=lc.get("link_bps"),
+        cells=params.lcos_cells,
+        subframe_s=params.subframe_s,
+        **link,
+    )
     meas = _camera(data["measurement_camera"], f"{path}: [measurement_camera]", params.subframe_s)
     vet = _camera(data["vet_camera"], f"{path}: [vet_camera]", params.frame_s)
     return Rig(
