@@ -245,7 +245,9 @@ class Campaign:
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                result = CliRunner().invoke(cli, ["-q", *args])
+                # --force: each case rewrites the same outputs; the readers are under test
+                force = ["--force"] if "-o" in args else []
+                result = CliRunner().invoke(cli, ["-q", *args, *force])
         finally:
             State.verbosity = 0  # -q counts down a process-wide level: reset it
         self._timed(time.perf_counter() - t0, f"{reader} on {case}")
