@@ -139,7 +139,7 @@ def test_hdr_and_motion_and_calibration_metadata_are_checked(tmp_path):
         read_layered(tmp_path / "u.exr")
     img = HDRImage(np.ones((4, 4, 1), np.float32), ["Y"], {}, mask=np.full((4, 4), 7, np.uint8))
     write_hdr(tmp_path / "m.exr", img)
-    with pytest.raises(FormatError, match=r"mask: codes \[7\] not in mask_codes \[0, 1, 2, 3\]"):
+    with pytest.raises(FormatError, match=r"mask: codes \[7\] not in mask_codes \[0, 1, 2, 3, 4\]"):
         read_layered(tmp_path / "m.exr")
     from stages.formats.layered import Layered
 

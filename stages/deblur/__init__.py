@@ -108,13 +108,16 @@ def deblur_mask(static_mask: np.ndarray, L: np.ndarray, L_init: np.ndarray) -> n
 
     hdr-static's codes hold where the deblur kept its value. Where the deblur replaced a
     pixel (``L`` differs from hdr-static's ``L_init``, both (H, W, C)), code 3 (the
-    noise-equivalent radiance) no longer describes the value and becomes 0; codes 1 (the
-    VET pixel saturated, so the value comes from the measuring images) and 2 (a lower
-    bound, which the deblur keeps) still hold. Returns a new (H, W) uint8 array.
+    noise-equivalent radiance) no longer describes the value and becomes 0, and code 4
+    (hdr-static's doubtful recovery of a moving pixel) becomes 1: the deblur's motion
+    explains the data, and the value comes from the measuring images; codes 1 (the VET
+    pixel saturated, so the value comes from the measuring images) and 2 (a lower bound,
+    which the deblur keeps) still hold. Returns a new (H, W) uint8 array.
     """
     mask = static_mask.copy()
     replaced = np.any(L != L_init, axis=2)
     mask[replaced & (mask == 3)] = 0
+    mask[replaced & (mask == 4)] = 1
     return mask
 
 
@@ -226,7 +229,7 @@ def deblur(
     # (Those saturated in the VET image alone are measured by the bins, which the default
     # method fits; the paper's method, which fits I only, keeps their hdr-static value.)
     bound_only = static.mask == 2
-    saturated = np.isin(static.mask, (1, 2)) if method == "paper" else bound_only
+    saturated = np.isin(static.mask, (1, 2, 4)) if method == "paper" else bound_only
     from .problem import observations
 
     # What both methods take: the start image and motion, and the capture's timing.
