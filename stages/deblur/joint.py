@@ -23,10 +23,11 @@ rigidly translating layers, with occlusion, estimated from all the measuring bin
 long baselines) and is kept fixed by default; the dense Gauss-Newton steps on ``u``
 (:func:`motion_step`) are taken only with ``update_motion=True`` (``make bench``,
 bench_layers, prints the layers' velocity errors against the truth). Coarse to fine:
-the motion is estimated on a grid of at most 400 px (:data:`stages.deblur.layers.MAX_WORK_PX`)
-and refined coarse-to-fine in velocity, and the layer boundaries are then placed at
-full resolution (:func:`stages.deblur.layers.labels.refine_boundaries`). The image is solved
-first on 2 x 2 blocks (:mod:`stages.deblur.pyramid`: the exact summed rows of each
+the motion is estimated on a grid of at most
+:data:`stages.deblur.layers.MAX_WORK_PX` pixels and refined coarse-to-fine in velocity,
+and the layer boundaries are then placed at full resolution
+(:func:`stages.deblur.layers.labels.refine_boundaries`). The image is solved first on
+2 x 2 blocks (:mod:`stages.deblur.pyramid`: the exact summed rows of each
 block, an eighth of the work per iteration), and hdr-static times the prolonged
 (log-domain) coarse correction starts the full-resolution solve
 (``JointOptions.levels``), which then needs one outer step fewer (``make bench`` prints
