@@ -17,7 +17,8 @@
 #
 # Make rebuilds only the outputs older than their capture, and every vet command writes
 # atomically, so an interrupted `make -j` never leaves a truncated output that a later
-# make would take for finished. Targets: vet-all, vet-hdr, vet-png, vet-clean, vet-list.
+# make would take for finished. The recipes pass --force: Make has decided the target is
+# out of date, so replacing it is what is asked (vet refuses to replace files otherwise). Targets: vet-all, vet-hdr, vet-png, vet-clean, vet-list.
 # Make does not track options: after changing VET_TONEMAP_FLAGS run `make -B vet-png`
 # (or use `vet batch`, whose manifest does). Every .exr/.npz under CAPTURES is taken for
 # a capture (vet batch instead skips files whose metadata says otherwise); files inside
@@ -56,19 +57,19 @@ vet-clean:
 # also match OUT/x/capture.hdr.exr, which is not a target.
 $(OUT)/%.hdr.exr: $(CAPTURES)/%/capture.exr
 	@mkdir -p $(@D)
-	$(VET) hdr-static $(VET_HDR_FLAGS) $< -o $@
+	$(VET) hdr-static --force $(VET_HDR_FLAGS) $< -o $@
 
 $(OUT)/%.hdr.exr: $(CAPTURES)/%/capture.npz
 	@mkdir -p $(@D)
-	$(VET) hdr-static $(VET_HDR_FLAGS) $< -o $@
+	$(VET) hdr-static --force $(VET_HDR_FLAGS) $< -o $@
 
 $(OUT)/%.hdr.exr: $(CAPTURES)/%.exr
 	@mkdir -p $(@D)
-	$(VET) hdr-static $(VET_HDR_FLAGS) $< -o $@
+	$(VET) hdr-static --force $(VET_HDR_FLAGS) $< -o $@
 
 $(OUT)/%.hdr.exr: $(CAPTURES)/%.npz
 	@mkdir -p $(@D)
-	$(VET) hdr-static $(VET_HDR_FLAGS) $< -o $@
+	$(VET) hdr-static --force $(VET_HDR_FLAGS) $< -o $@
 
 $(OUT)/%.png: $(OUT)/%.hdr.exr
-	$(VET) tonemap $(VET_TONEMAP_FLAGS) $< -o $@
+	$(VET) tonemap --force $(VET_TONEMAP_FLAGS) $< -o $@

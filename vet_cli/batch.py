@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from ._common import Progress, State, command, log, verbosity_options
+from .params import STOPS
 
 
 def _parse_param(text: str) -> tuple[str, str, Any]:
@@ -85,7 +86,7 @@ Examples:
     help="Use the existing Dask cluster at ADDRESS (tcp://HOST:PORT) instead.",
 )
 @click.option("--operator", default=None, help="Tone-mapping operator of the tonemap step [log].")
-@click.option("--exposure", type=float, default=None, help="Tone-mapping exposure, stops [0].")
+@click.option("--exposure", type=STOPS, default=None, help="Tone-mapping exposure, stops [0].")
 @click.option(
     "--param",
     "params",

@@ -15,15 +15,16 @@ skipping a damaged capture.
 
 from __future__ import annotations
 
-import json
 import os
 import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..errors import FormatError
 from ..formats.capture import CAPTURE_FILENAMES
 from ..formats.io import EXR_MAGIC, ZIP_MAGIC
+from ..formats.limits import parse_json
 
 #: File extensions that may hold a capture (compared in lower case).
 CAPTURE_EXTENSIONS = (".exr", ".npz")
@@ -162,8 +163,8 @@ def _npz_kind(path: str | Path) -> str | None:
         with zf.open("__meta__.npy") as fp:
             text = str(np.lib.format.read_array(fp, allow_pickle=False))
     try:
-        meta = json.loads(text)
-    except json.JSONDecodeError:
+        meta = parse_json(text, str(path))
+    except FormatError:
         return UNREADABLE
     kind = meta.get("kind") if isinstance(meta, dict) else None
     return str(kind) if kind else None

@@ -362,8 +362,12 @@ def fuse_still(
         return np.where(d > 0, rhs[pixels] / d, fallback)
 
 
-def _coarse_start(obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts):
-    """Start of the fine solve: hdr-static times the coarse level's correction (H W, C)."""
+def _coarse_start(
+    obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts, progress=None
+):
+    """Start of the fine solve: hdr-static times the coarse level's correction (H W, C).
+
+    ``progress(done, total)`` is the coarse solve's."""
     from dataclasses import replace
 
     from .pyramid import block_sum, coarsen, prolong_correction, restrict_mean
@@ -378,7 +382,16 @@ def _coarse_start(obs, L_init, velocity, T, frame_s, subframe_s, leakage, satura
     # full resolution.
     copts = replace(opts, levels=opts.levels - 1, history=[], update_motion=False, fuse_still=False)
     L_c, _ = deblur_joint(
-        cobs, L_c0.astype(np.float32), vel_c, t_c, frame_s, subframe_s, leakage, sat_c, copts
+        cobs,
+        L_c0.astype(np.float32),
+        vel_c,
+        t_c,
+        frame_s,
+        subframe_s,
+        leakage,
+        sat_c,
+        copts,
+        progress=progress,
     )
     # Multiplicative (log-domain) correction: an additive one, interpolated across a
     # bright edge, drives the dark pixels beside it negative.
@@ -446,9 +459,17 @@ def deblur_joint(
     start = None
     if report is not None:
         report["still_pixels"] = "hdr-static"
-    if opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0):
+    total = opts.outer + 1
+    coarse = opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0)
+    # Progress counts the coarse start as `total` steps (whatever its own levels), then
+    # the fine solve's steps.
+    units = 2 * total if coarse else total
+    if progress:
+        progress(0, units)
+    if coarse:
+        sub = (lambda d, t: progress(d * total // max(t, 1), units)) if progress else None
         start = _coarse_start(
-            obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts
+            obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts, sub
         )
     ref = np.stack(
         [cv2.GaussianBlur(L_init[..., k].astype(np.float32), (0, 0), 1.0) for k in range(c)], -1
@@ -463,7 +484,6 @@ def deblur_joint(
     # Noise-equivalent floor (as hdr-static's): one electron over the pixel's exposure.
     expo = np.maximum(T, leakage * frame_s + (1 - leakage) * T).reshape(n, 1)
     floor = np.broadcast_to(1.0 / expo, (n, c))
-    total = opts.outer + 1
     iters_done = 0
     built_for = None
     for it in range(total):
@@ -541,5 +561,7 @@ def deblur_joint(
             time.perf_counter() - ts,
         )
         if progress:
-            progress(it + 1, total)
+            progress(units - total + it + 1, units)
+    if progress:  # (also when no pixel moves and the loop stopped early)
+        progress(units, units)
     return L.reshape(h, wd, c).astype(np.float32), vel

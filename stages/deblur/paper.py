@@ -185,9 +185,12 @@ def deblur_paper(
 
     L = np.maximum(L, floor)
     alpha = None
+    total = opts.outer * opts.sd_iters
     for outer in range(opts.outer):
         e_cur = energy(A, L)
-        for _ in range(opts.sd_iters):
+        for it in range(opts.sd_iters):
+            if progress:
+                progress(outer * opts.sd_iters + it, total)
             r = data_res(A, L)
             _e_h, g_h = _hist_term(L, ref_hist)
             grad_L = 2 * s2 * at(A, r) + 2 * opts.lam_L * laplacian(laplacian(L)) + opts.lam_h * g_h
@@ -227,6 +230,6 @@ def deblur_paper(
             A_new, _ = build_operators(obs, trial, step_px=opts.step_px, subframe_s=subframe_s)
             if np.sum(data_res(A_new, L) ** 2) < np.sum(r**2):
                 vel, A = trial, A_new
-        if progress:
-            progress(outer + 1, opts.outer)
+    if progress:
+        progress(total, total)
     return L.astype(np.float32), vel

@@ -16,12 +16,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from ..errors import FormatError, InputError
+from . import limits
+from .limits import check_size  # noqa: F401 - re-exported for readers of raw frames
+from .names import display_format, format_for_output  # noqa: F401 - format_for_output re-exported
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 ZIP_MAGIC = b"PK\x03\x04"
-#: Largest input we accept without being told otherwise (bytes). Guards against files
-#: whose headers promise absurd sizes.
-MAX_INPUT_BYTES = int(os.environ.get("VET_MAX_INPUT_BYTES", str(8 * 1024**3)))
 
 
 def sniff(path: str | Path) -> str:
@@ -44,18 +44,6 @@ def sniff(path: str | Path) -> str:
     raise FormatError(f"{path}: not an OpenEXR or NumPy .npz file (unrecognised magic bytes)")
 
 
-def format_for_output(path: str, default: str = "exr") -> str:
-    """Pick the output format from the name's extension (``-`` gives ``default``)."""
-    if path == "-":
-        return default
-    ext = Path(path).suffix.lower()
-    if ext == ".exr":
-        return "exr"
-    if ext == ".npz":
-        return "npz"
-    raise InputError(f"{path}: unsupported output extension {ext or '(none)'!r}; use .exr or .npz")
-
-
 @contextlib.contextmanager
 def spooled_input(path: str | Path) -> Iterator[Path]:
     """Yield a real, seekable file path for ``path``; ``-`` spools stdin to a temp file.
@@ -67,6 +55,8 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
         p = Path(path)
         if not p.exists():
             raise InputError(f"{p}: no such file")
+        if p.is_file():
+            limits.check_file_size(p.stat().st_size, str(p))
         yield p
         return
     fd, tmp = tempfile.mkstemp(prefix="vet-stdin-")
@@ -79,7 +69,7 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
                 if not chunk:
                     break
                 total += len(chunk)
-                if total > MAX_INPUT_BYTES:
+                if total > limits.MAX_INPUT_BYTES:
                     raise InputError(
                         "standard input exceeds the input size limit (VET_MAX_INPUT_BYTES)"
                     )
@@ -131,8 +121,6 @@ def check_output(path: str | Path | None, kind: str = "data", parents: bool = Tr
     if kind == "data":
         format_for_output(str(target))
     elif kind == "display":
-        from .images import display_format  # images writes through this module
-
         display_format(target)
     else:
         raise ValueError(f"unknown output kind {kind!r}")
@@ -173,12 +161,3 @@ def atomic_output(path: str | Path, suffix: str | None = None) -> Iterator[Path]
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp_path)
-
-
-def check_size(nbytes: int, what: str) -> None:
-    """Refuse to allocate more than :data:`MAX_INPUT_BYTES` for one input."""
-    if nbytes < 0 or nbytes > MAX_INPUT_BYTES:
-        raise FormatError(
-            f"{what}: declares {nbytes} bytes of pixel data, over the limit of "
-            f"{MAX_INPUT_BYTES} (set VET_MAX_INPUT_BYTES to raise it)"
-        )
