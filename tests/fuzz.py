@@ -10,8 +10,9 @@ bytes (flips, truncation, garbage runs) or its zip members (renamed, other metho
 (exit 0, nothing stray on stdout), *refused* (exit 1, exactly one line ``vet <command>:
 error: ...`` on stderr, not an internal error, nothing on stdout; for ``vet batch``, its
 exit 3 "some captures failed") or *BAD* (anything else: a traceback, an internal error,
-another exit status, stray output). Readers without a command of their own (calibration
-files, rig files) are called as functions: a one-line VetError is *refused*.
+another exit status, stray output); *warned* is ok or refused with a Python warning
+(numpy's overflow, say) that would reach stderr. Readers without a command of their own
+(calibration files, rig files) are called as functions: a one-line VetError is *refused*.
 
 ``python -m tests.fuzz [CASES_PER_KIND] [SEED]`` runs a longer campaign and prints counts.
 """
@@ -27,6 +28,7 @@ import random
 import sys
 import tempfile
 import time
+import warnings
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -227,6 +229,7 @@ class Campaign:
         self.seed = seed
         self.counts: collections.Counter = collections.Counter()
         self.bad: list[str] = []
+        self.warned: list[str] = []  # ok or refused, but with a Python warning on stderr
         self.slowest = 0.0
         self.slowest_case = ""
         self.only: tuple[str, int] | None = None  # replay one case: (kind, index)
@@ -240,11 +243,21 @@ class Campaign:
 
         t0 = time.perf_counter()
         try:
-            result = CliRunner().invoke(cli, ["-q", *args])
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                # --force: each case rewrites the same outputs; the readers are under test
+                force = ["--force"] if "-o" in args else []
+                result = CliRunner().invoke(cli, ["-q", *args, *force])
         finally:
             State.verbosity = 0  # -q counts down a process-wide level: reset it
         self._timed(time.perf_counter() - t0, f"{reader} on {case}")
-        self._count(reader, classify(result, args[0], stdout_ok), case)
+        outcome = classify(result, args[0], stdout_ok)
+        if caught and not outcome.startswith("BAD"):  # a Python warning on stderr
+            self.warned.append(
+                f"{reader} on {case}: {outcome}, {caught[0].category.__name__}: {caught[0].message}"
+            )
+            outcome = "warned"
+        self._count(reader, outcome, case)
 
     def fn(self, reader: str, fn: Callable[[], object], case: str) -> None:
         t0 = time.perf_counter()
@@ -263,13 +276,17 @@ class Campaign:
 
     def summary(self) -> str:
         readers = sorted({r for r, _ in self.counts})
-        rows = [f"{'reader':28s} {'cases':>6s} {'ok':>6s} {'refused':>8s} {'BAD':>5s}"]
+        rows = [
+            f"{'reader':28s} {'cases':>6s} {'ok':>6s} {'refused':>8s} {'warned':>7s} {'BAD':>5s}"
+        ]
         for r in readers:
-            c = {o: self.counts[(r, o)] for o in ("ok", "refused", "BAD")}
+            c = {o: self.counts[(r, o)] for o in ("ok", "refused", "warned", "BAD")}
             rows.append(
-                f"{r:28s} {sum(c.values()):6d} {c['ok']:6d} {c['refused']:8d} {c['BAD']:5d}"
+                f"{r:28s} {sum(c.values()):6d} {c['ok']:6d} {c['refused']:8d} {c['warned']:7d} "
+                f"{c['BAD']:5d}"
             )
         rows.append(f"slowest run {self.slowest:.2f} s: {self.slowest_case}")
+        rows += [f"warned: {w}" for w in self.warned[:10]]
         return "\n".join(rows)
 
     def run(self, cases_per_kind: int, batch_cases: int = 0) -> None:
@@ -289,8 +306,23 @@ class Campaign:
             root.mkdir()
             cap = self.mutant("capture", rng, f"batchcapture{i}")
             cap.rename(root / f"a{cap.suffix}")
-            self.cli("batch", ["batch", str(root), "-o", str(out / f"b{i}"), "-j", "1",
-                               "--steps", "hdr-static"], f"batch case {i}", stdout_ok=True)  # fmt: skip
+            args = [
+                "batch",
+                str(root),
+                "-o",
+                str(out / f"b{i}"),
+                "-j",
+                "1",
+                "--steps",
+                "hdr-static",
+            ]
+            self.cli("batch", args, f"batch case {i}", stdout_ok=True)
+            # The same batch again over a damaged manifest: set aside with a warning.
+            manifest = out / f"b{i}" / ".vet-batch-manifest.json"
+            if manifest.is_file():
+                damaged = mutate_meta(json.loads(manifest.read_text()), rng)
+                manifest.write_text(json.dumps(damaged))
+                self.cli("batch (manifest)", args, f"manifest case {i}", stdout_ok=True)
 
     def mutant(self, kind: str, rng: random.Random, name: str) -> Path:
         from stages.formats.layered import write_layered

@@ -290,6 +290,7 @@ def test_invalid_option_values_are_usage_errors(tmp_path, case):
         ("deblur.method=fast", "deblur method must be one of vet, paper, not 'fast'"),
         ("deblur.fuse_still=maybe", "fuse_still must be one of true, false, auto"),
         ("tonemap.exposure=nan", "tonemap exposure must be a number of stops within +/-64"),
+        ("deblur.tile=8", "deblur tile must be one of auto, none, null, an integer >= 64"),
     ],
 )
 @pytest.mark.parametrize("dry", [False, True], ids=["run", "dry-run"])
@@ -361,6 +362,24 @@ def test_progress_on_a_terminal_is_one_updating_bar():
     text = stream.getvalue()
     assert "\r" in text and "vet: simulate vet" in text and "50/50" in text and "100%" in text
     assert text.count("\n") == 1, repr(text)
+
+
+def test_progress_shows_a_long_first_step_without_further_reports():
+    """A stage reports (0, N) and then works for long: the display must not stay blank."""
+    import time
+
+    from vet_cli._common import Progress
+
+    pipe, tty = io.StringIO(), _Tty()
+    with Progress("deblur vet", delay_s=0.05, every_s=0.05, stream=pipe, tick_s=0.01) as p:
+        p(0, 9)
+        time.sleep(0.4)
+    lines = pipe.getvalue().splitlines()
+    assert len(lines) >= 2 and all(ln.startswith("vet: deblur vet: 0/9 (0%)") for ln in lines)
+    with Progress("deblur vet", delay_s=0.05, stream=tty, tick_s=0.01) as p:
+        p(0, 9)
+        time.sleep(0.3)
+    assert "vet: deblur vet:   0%|" in tty.getvalue() and "0/9" in tty.getvalue()
 
 
 def test_progress_is_silent_when_quiet_and_for_short_steps(monkeypatch):

@@ -134,6 +134,9 @@ def test_hdr_and_motion_and_calibration_metadata_are_checked(tmp_path):
     write_hdr(tmp_path / "h.exr", img)
     with pytest.raises(FormatError, match="radiance_scale: must be greater than 0"):
         read_layered(tmp_path / "h.exr")
+    write_hdr(tmp_path / "u.exr", HDRImage(np.ones((4, 4, 1), np.float32), ["Y"], {"units": "W"}))
+    with pytest.raises(FormatError, match="units: must be 'scene', 'DN/s' or 'unknown'"):
+        read_layered(tmp_path / "u.exr")
     img = HDRImage(np.ones((4, 4, 1), np.float32), ["Y"], {}, mask=np.full((4, 4), 7, np.uint8))
     write_hdr(tmp_path / "m.exr", img)
     with pytest.raises(FormatError, match=r"mask: codes \[7\] not in mask_codes \[0, 1, 2, 3\]"):

@@ -11,6 +11,7 @@ import logging
 import math
 import re
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -136,10 +137,12 @@ class Progress:
     """Progress of one long step on stderr, fed by a stage's ``progress(done, total)``.
 
     A terminal gets an updating bar (tqdm); a pipe or a log gets a line at most every
-    ``every_s`` seconds and one at the end. Steps shorter than ``delay_s`` show nothing,
-    and ``-q`` shows nothing. :meth:`note` names the part under way (a bar's label, a
-    line on a pipe). ``counts=False`` shows the percentage alone (for a stage whose
-    units are not steps). Call :meth:`finish` (or use it as a context manager) at the end.
+    ``every_s`` seconds and one at the end. Once the first report arrives a ticker keeps
+    the display alive between reports (a long first step still shows, its elapsed time
+    moving). Steps shorter than ``delay_s`` show nothing, and ``-q`` shows nothing.
+    :meth:`note` names the part under way (a bar's label, a line on a pipe).
+    ``counts=False`` shows the percentage alone (for a stage whose units are not steps).
+    Call :meth:`finish` (or use it as a context manager) at the end.
     """
 
     def __init__(
@@ -149,6 +152,7 @@ class Progress:
         every_s: float = 5.0,
         stream: Any = None,
         counts: bool = True,
+        tick_s: float = 1.0,
     ):
         self.label = label
         self.counts = counts
@@ -156,12 +160,16 @@ class Progress:
         self.start = time.monotonic()
         self.delay_s = delay_s
         self.every_s = every_s
+        self.tick_s = tick_s
         self.last = -math.inf
         self.shown = False
         self.ended = False
         self.done, self.total = 0, 0
         self.part = ""
         self.bar: Any = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._ticker: threading.Thread | None = None
         try:
             self.tty = bool(self.stream.isatty())
         except (AttributeError, ValueError):
@@ -179,8 +187,31 @@ class Progress:
     def __call__(self, done: int, total: int) -> None:
         if self._quiet():
             return
-        self.done, self.total = int(done), max(int(total), 1)
-        now = time.monotonic()
+        with self._lock:
+            self.done, self.total = int(done), max(int(total), 1)
+            self._show(time.monotonic(), ticking=False)
+        self._start_ticker()
+
+    def note(self, part: str) -> None:
+        """Name the part of the step now under way."""
+        if self._quiet():
+            return
+        with self._lock:
+            self.part = part
+            if self.tty:
+                if self.bar is None and time.monotonic() - self.start >= self.delay_s:
+                    self._open_bar()
+                if self.bar is not None:
+                    self.bar.set_description_str(self._desc(), refresh=True)
+            else:
+                self.last = time.monotonic()
+                self._line(f"{part} ({self._amount()})" if self.total else part)
+        self._start_ticker()
+
+    def _show(self, now: float, ticking: bool) -> None:
+        """Update the display (the lock held)."""
+        if self.ended:
+            return
         if self.tty:
             if self.bar is None:
                 if now - self.start < self.delay_s:
@@ -193,33 +224,28 @@ class Progress:
             self.shown = True
             return
         at_end = self.done >= self.total
-        if self.done == 0:
+        if at_end and not ticking:
+            if self.shown or now - self.start >= self.delay_s:
+                self.ended = True
+                self._line(self._amount())
             return
-        if now - self.start < self.delay_s and not (at_end and self.shown):
+        if now - self.start < self.delay_s or now - self.last < self.every_s:
             return
-        if at_end and self.ended:
-            return
-        if not at_end and now - self.last < self.every_s:
+        if self.done == 0 and not ticking:
             return
         self.last = now
-        self.ended = at_end
-        self._line(
-            f"{self.part} ({self._amount()})" if self.part and not at_end else self._amount()
-        )
+        self._line(f"{self.part} ({self._amount()})" if self.part else self._amount())
 
-    def note(self, part: str) -> None:
-        """Name the part of the step now under way."""
-        if self._quiet():
-            return
-        self.part = part
-        if self.tty:
-            if self.bar is None and time.monotonic() - self.start >= self.delay_s:
-                self._open_bar()
-            if self.bar is not None:
-                self.bar.set_description_str(self._desc(), refresh=True)
-        else:
-            self.last = time.monotonic()
-            self._line(f"{part} ({self._amount()})" if self.total else part)
+    def _start_ticker(self) -> None:
+        if self._ticker is None and self.tick_s > 0 and not self._stop.is_set():
+            self._ticker = threading.Thread(target=self._tick, name="vet-progress", daemon=True)
+            self._ticker.start()
+
+    def _tick(self) -> None:
+        while not self._stop.wait(self.tick_s):
+            with self._lock:
+                if not self._stop.is_set() and self.total:
+                    self._show(time.monotonic(), ticking=True)
 
     def _amount(self) -> str:
         pct = f"{100.0 * self.done / max(self.total, 1):.0f}%"
@@ -243,6 +269,7 @@ class Progress:
             + " [{elapsed}<{remaining}]",
         )
         self.bar.start_t -= time.monotonic() - self.start  # elapsed since the step began
+        self.bar.refresh()
 
     def _line(self, text: str) -> None:
         elapsed = time.monotonic() - self.start
@@ -251,11 +278,16 @@ class Progress:
         self.shown = True
 
     def finish(self) -> None:
-        """Close the bar (a terminal), or print the last line (a pipe) if any was shown."""
-        if self.bar is not None:
-            self.bar.n = self.bar.total if self.done >= self.total else self.bar.n
-            self.bar.close()
-            self.bar = None
-        elif self.shown and not self.ended and not self._quiet() and self.total:
-            self.ended = True
-            self._line(self._amount())
+        """Stop the ticker; close the bar (a terminal), or print the last line (a pipe)
+        if any was shown."""
+        self._stop.set()
+        if self._ticker is not None:
+            self._ticker.join()
+        with self._lock:
+            if self.bar is not None:
+                self.bar.n = self.bar.total if self.done >= self.total else self.bar.n
+                self.bar.close()
+                self.bar = None
+            elif self.shown and not self.ended and not self._quiet() and self.total:
+                self.ended = True
+                self._line(self._amount())

@@ -151,21 +151,21 @@ def cli(
             progress(data["done"], data["total"])
 
     try:
-        report = run_batch(
-            root,
-            output,
-            steps=steps,
-            params=overrides,
-            jobs=n_jobs,
-            scheduler=scheduler,
-            force=force,
-            retry_failed=retry_failed,
-            dry_run=dry_run,
-            on_event=on_event,
-        )
+        with progress:
+            report = run_batch(
+                root,
+                output,
+                steps=steps,
+                params=overrides,
+                jobs=n_jobs,
+                scheduler=scheduler,
+                force=force,
+                retry_failed=retry_failed,
+                dry_run=dry_run,
+                on_event=on_event,
+            )
     except StepSpecError as exc:
         raise click.UsageError(str(exc)) from None
-    progress.finish()
     s = report.summary
     c = s["counts"]
     if dry_run:

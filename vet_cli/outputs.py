@@ -4,7 +4,7 @@
   that already holds the files it makes (a capture, a report), unless ``--force`` is
   given. ``vet batch`` is the exception: its manifest decides what is out of date.
 - ``-`` (standard output) may stand for one output of a command only, and never for a
-  terminal: binary data is for a file or a pipe.
+  terminal: binary data is for a file or a pipe. Two outputs never name one file.
 - Names are checked as :func:`stages.formats.io.check_output` checks them (extension,
   existing folder) before the command reads its inputs.
 """
@@ -69,8 +69,8 @@ def check_outputs(outputs: Iterable[Output], force: bool = False) -> None:
     Raises
     ------
     click.UsageError
-        ``-`` given for more than one output, or for standard output that is a terminal
-        (exit 2).
+        ``-`` given for more than one output, or for standard output that is a terminal;
+        two outputs naming one file (exit 2).
     stages.errors.InputError
         A bad name (extension, missing folder), or an existing output without
         ``force`` (exit 1).

@@ -43,6 +43,9 @@ class Size(click.ParamType):
 
     name = "WxH"
 
+    def get_metavar(self, *args: Any, **kwargs: Any) -> str:
+        return "WxH"
+
     def convert(
         self, value: Any, param: click.Parameter | None, ctx: click.Context | None
     ) -> tuple[int, int]:

@@ -121,6 +121,7 @@ DEBLUR_PARAMS = {
     "method": ("vet", "paper"),
     "motion_init": ("layers", "farneback", "dis", "truth", "zero", None),
     "fuse_still": (True, False, "auto", None),
+    "tile": ("auto", "none", None, "an integer >= 64"),
 }
 
 
@@ -133,6 +134,11 @@ def _validate_deblur(params: dict[str, Any]) -> None:
                 f"{', '.join(DEBLUR_PARAMS)})"
             )
         allowed = DEBLUR_PARAMS[key]
+        if key == "tile" and isinstance(value, int) and not isinstance(value, bool):
+            from ..deblur.tiles import MIN_TILE_PX
+
+            if value >= MIN_TILE_PX:
+                continue
         if not any(value is a or (isinstance(a, str) and value == a) for a in allowed):
             shown = ", ".join("null" if a is None else str(a).lower() for a in allowed)
             raise StepSpecError(f"deblur {key} must be one of {shown}, not {value!r}")

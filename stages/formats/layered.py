@@ -6,7 +6,9 @@ float32 with named channels, plus one JSON metadata dictionary.
 
 EXR layout: channel ``"{layer}.{channel}"`` (the unnamed layer ``""`` uses bare channel
 names such as ``R, G, B`` so that viewers show it); metadata as the string attributes
-``vet:kind`` and ``vet:meta`` (JSON), readable with ``oiiotool --info -v``.
+``vetKind`` and ``vetMeta`` (JSON, continued in ``vetMeta0001``... past 900 characters, so
+that tools reading attributes as lines of text take them whole), readable with ``oiiotool
+--info -v`` (files written before use ``vet:kind`` and ``vet:meta``, still read).
 
 NPZ layout: array ``layer:{name}`` per layer, plus 0-d unicode arrays ``__channels__``
 and ``__meta__`` holding JSON. Nothing is pickled; reading refuses object arrays.
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -25,13 +28,16 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FormatError, InputError
+from ..errors import FormatError, OutputError
 from . import limits, schema
 from .io import atomic_output, sniff, spooled_input
 from .names import format_for_output
 
-META_ATTR = "vet:meta"
-KIND_ATTR = "vet:kind"
+META_ATTR = "vetMeta"
+KIND_ATTR = "vetKind"
+#: The names vet wrote before: ``prefix:name`` attributes read as ``channel:tag`` by some
+#: tools (pfstools warns there is no channel ``vet``). Still read.
+LEGACY_ATTRS = {META_ATTR: "vet:meta", KIND_ATTR: "vet:kind"}
 
 
 @dataclass
@@ -82,7 +88,10 @@ def _oiio():
     return oiio
 
 
-def write_exr(path: Path, data: Layered, compression: str = "zip") -> None:
+def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | None = None) -> None:
+    """Write ``data`` as a multi-layer float32 EXR at ``path`` (``what``: its name in
+    messages, when ``path`` is a temporary file). Raises OutputError on failure."""
+    what = what or str(path)
     oiio = _oiio()
     h, w = data.shape
     names: list[str] = []
@@ -95,15 +104,46 @@ def write_exr(path: Path, data: Layered, compression: str = "zip") -> None:
     spec.channelnames = tuple(names)
     spec.attribute("compression", compression)
     spec.attribute(KIND_ATTR, str(data.meta.get("kind", "")))
-    spec.attribute(META_ATTR, json.dumps(data.meta, sort_keys=True, default=_json_default))
+    text = json.dumps(data.meta, sort_keys=True, default=_json_default)
+    for name, part in meta_chunks(text):
+        spec.attribute(name, part)
     out = oiio.ImageOutput.create(str(path))
     if out is None or not out.open(str(path), spec):
-        raise InputError(f"{path}: cannot write EXR ({oiio.geterror()})")
+        raise OutputError(f"{what}: cannot write EXR ({_last_error(oiio.geterror, '?')})")
     try:
         if not out.write_image(pixels):
-            raise InputError(f"{path}: cannot write EXR ({out.geterror()})")
+            raise OutputError(f"{what}: cannot write EXR ({_last_error(out.geterror, '?')})")
     finally:
         out.close()
+
+
+#: Characters of metadata per EXR string attribute: tools that turn attributes into text
+#: lines of at most 1024 bytes (pfstools' tags) read each one whole.
+META_CHUNK_CHARS = 900
+
+
+def meta_chunks(text: str) -> list[tuple[str, str]]:
+    """The metadata JSON as EXR attributes: ``vetMeta`` holds the first
+    :data:`META_CHUNK_CHARS` characters, ``vetMeta0001``, ``vetMeta0002``... the rest."""
+    parts = [text[i : i + META_CHUNK_CHARS] for i in range(0, len(text), META_CHUNK_CHARS)]
+    return [
+        (META_ATTR if i == 0 else f"{META_ATTR}{i:04d}", p) for i, p in enumerate(parts or [""])
+    ]
+
+
+def _joined_meta(spec: Any) -> str:
+    """The metadata JSON of an EXR header: ``vetMeta`` and its continuations, or the
+    single ``vet:meta`` attribute of files written before."""
+    text = spec.get_string_attribute(META_ATTR, "")
+    if not text:
+        return spec.get_string_attribute(LEGACY_ATTRS[META_ATTR], "")
+    parts = [text]
+    for i in range(1, 10**4):
+        part = spec.get_string_attribute(f"{META_ATTR}{i:04d}", "")
+        if not part:
+            break
+        parts.append(part)
+    return "".join(parts)
 
 
 def _last_error(geterror: Callable[[], str], default: str) -> str:
@@ -158,7 +198,9 @@ def _read_oiio_pixels(
     if nch > MAX_CHANNELS:
         raise FormatError(f"{what}: image has {nch} channels, over the limit of {MAX_CHANNELS}")
     limits.check_declared(w * h * nch * 4, Path(path).stat().st_size, what)
-    values = {a: spec.get_string_attribute(a, "") for a in attrs}
+    values = {
+        a: _joined_meta(spec) if a == META_ATTR else spec.get_string_attribute(a, "") for a in attrs
+    }
     if before_pixels is not None:
         before_pixels(values, h, w)
     pixels = inp.read_image(0, 0, 0, nch, "float")
@@ -176,8 +218,9 @@ def read_exr(path: Path, what: str | None = None) -> Layered:
     meta: dict[str, Any] = {}
 
     def check(values: dict[str, str], h: int, w: int) -> None:
-        if values[META_ATTR]:
-            meta.update(_parse_meta(values[META_ATTR], what))
+        text = values[META_ATTR]
+        if text:
+            meta.update(_parse_meta(text, what))
             schema.check_meta(meta, what)
         _check_declared_size(declared_size(meta), (h, w), "", what)
 
@@ -221,6 +264,21 @@ _NPZ_METHODS = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED)
 MAX_CHANNELS = 1024
 
 
+#: What numpy's .npy reader and zipfile raise on damaged input (the header is parsed with
+#: tokenize and ast, which have exceptions of their own).
+_NPY_ERRORS = (
+    ValueError,
+    TypeError,
+    NotImplementedError,  # zipfile: a member needing a zip version or feature it lacks
+    SyntaxError,
+    tokenize.TokenError,
+    EOFError,
+    OSError,
+    zipfile.BadZipFile,
+    zlib.error,
+)
+
+
 def _npz_member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str):
     """``(shape, dtype, header bytes)`` of one .npy member, read without inflating its data."""
     member = info.filename
@@ -234,9 +292,11 @@ def _npz_member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str):
             else:
                 raise ValueError(f"unsupported .npy version {version}")
             header = fp.tell()
-    except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as exc:
+    except _NPY_ERRORS as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise FormatError(f"{what}: member {member!r} is not a NumPy array ({first})") from None
+    if any(int(n) < 0 for n in shape):
+        raise FormatError(f"{what}: member {member!r} declares a negative shape {shape}")
     if dtype.hasobject:
         raise FormatError(
             f"{what}: member {member[:-4]!r} holds Python objects (pickle); refusing to load"
@@ -254,7 +314,7 @@ def _npz_array(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str) -> np.ndar
     try:
         with zf.open(info) as fp:
             return np.lib.format.read_array(fp, allow_pickle=False)
-    except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as exc:
+    except _NPY_ERRORS as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise FormatError(f"{what}: corrupt .npz member {info.filename!r} ({first})") from None
 
@@ -289,7 +349,7 @@ def read_npz(path: Path, what: str | None = None) -> Layered:
     try:
         on_disk = Path(path).stat().st_size
         zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
         raise FormatError(f"{what}: not a valid .npz file ({exc})") from None
     with zf:
         infos = zf.infolist()
@@ -357,34 +417,34 @@ def _parse_meta(source: Any, what: str, zf: zipfile.ZipFile | None = None) -> di
     return meta
 
 
-def declared_size(meta: dict[str, Any]) -> tuple[int, int] | None:
-    """The image size ``(height, width)`` that a file's metadata declares, if any.
+def declared_size(meta: dict[str, Any]) -> tuple[int, int, str] | None:
+    """The image size that a file's metadata declares, if any: ``(height, width, field)``.
 
     From ``sensor_size`` ``[width, height]`` (calibrations) or ``rig.sensor_size``
     (captures, HDR images made from them); None when neither is a pair of positive ints
     (the schema reports malformed ones by name).
     """
     rig = meta.get("rig")
-    for source in (
-        meta.get("sensor_size"),
-        rig.get("sensor_size") if isinstance(rig, dict) else None,
+    for field_name, source in (
+        ("sensor_size", meta.get("sensor_size")),
+        ("rig.sensor_size", rig.get("sensor_size") if isinstance(rig, dict) else None),
     ):
         if (
             isinstance(source, list)
             and len(source) == 2
             and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in source)
         ):
-            return int(source[1]), int(source[0])
+            return int(source[1]), int(source[0]), field_name
     return None
 
 
 def _check_declared_size(
-    expected: tuple[int, int] | None, size: tuple[int, int], layer: str, what: str
+    expected: tuple[int, int, str] | None, size: tuple[int, int], layer: str, what: str
 ) -> None:
-    if expected is not None and tuple(size) != expected:
+    if expected is not None and tuple(size) != expected[:2]:
         raise FormatError(
-            f"{what}: layer {layer or 'image'!r} is {size[1]}x{size[0]} pixels but the metadata declares "
-            f"a {expected[1]}x{expected[0]} sensor (sensor_size)"
+            f"{what}: {expected[2]}: {expected[1]}x{expected[0]} but layer "
+            f"{layer or 'image'!r} is {size[1]}x{size[0]} pixels; they must match"
         )
 
 
@@ -426,6 +486,6 @@ def write_layered(path: str | Path, data: Layered, fmt: str | None = None) -> No
     data.meta["channel_order"] = {k: list(v) for k, v in data.channels.items()}
     with atomic_output(path, suffix="." + fmt) as tmp:
         if fmt == "exr":
-            write_exr(tmp, data)
+            write_exr(tmp, data, what="standard output" if str(path) == "-" else str(path))
         else:
             write_npz(tmp, data)

@@ -84,17 +84,19 @@ class Rig(BaseModel):
             )
         if self.homography:
             h = np.asarray(self.homography, float)
-            if abs(np.linalg.det(h)) < 1e-12:
-                raise ValueError("homography: must be an invertible 3x3 matrix")
             w, hh = self.lcos_cells
-            corners = np.array([[0, 0, 1], [w, 0, 1], [0, hh, 1], [w, hh, 1]], float) @ h.T
+            with np.errstate(all="ignore"):
+                if not abs(np.linalg.det(h)) >= 1e-12:
+                    raise ValueError("homography: must be an invertible 3x3 matrix")
+                corners = np.array([[0, 0, 1], [w, 0, 1], [0, hh, 1], [w, hh, 1]], float) @ h.T
+                xy = corners[:, :2] / corners[:, 2:]
+            if not np.isfinite(xy).all():
+                raise ValueError("homography: maps LCoS corners to infinity")
             if np.any(corners[:, 2] <= 0):
                 raise ValueError("homography: maps LCoS corners behind the sensor (w <= 0)")
-            xy = corners[:, :2] / corners[:, 2:]
             sw, sh = self.sensor_size
             if (
-                xy[:, 0].max() <= 0
-                or xy[:, 1].max() <= 0
+                min(xy[:, 0].max(), xy[:, 1].max()) <= 0
                 or xy[:, 0].min() >= sw
                 or (xy[:, 1].min() >= sh)
             ):
@@ -171,7 +173,8 @@ class HDRMeta(_FileMeta):
     """An HDR image's metadata (:mod:`stages.formats.hdr`)."""
 
     kind: Literal["hdr"]
-    units: Str | None = None
+    # scene: simulated captures' scene units; DN/s: recorded ones; unknown: foreign images.
+    units: Literal["scene", "DN/s", "unknown"] | None = None
     rig: Rig | None = None
     mask_codes: dict[Annotated[str, Field(pattern=r"^[0-9]{1,3}$")], Str] | None = None
     display_referred: bool | None = None
@@ -250,16 +253,24 @@ class ManifestInput(_Open):
 class ManifestStep(_Open):
     key: Str
     output: Str | None = None
+    version: Str | None = None
+    params: dict[str, Any] = {}
     sha256: Annotated[str, Field(strict=True, pattern=r"^[0-9a-f]{64}$")] | None = None
     size: Annotated[int, Field(strict=True, ge=0)] | None = None
     mtime_ns: Int | None = None
+
+
+class ManifestFailure(_Open):
+    step: Str
+    reason: Str
+    key: Str | None = None
 
 
 class ManifestCapture(_Open):
     input: ManifestInput
     status: Literal["ok", "failed"]
     steps: dict[str, ManifestStep] = {}
-    failure: dict[str, Any] | None = None
+    failure: ManifestFailure | None = None
 
 
 class Manifest(_Open):
@@ -363,9 +374,11 @@ def check_layers(
         field = layers["motion"]
         top = MAX_SPEED_IMAGES_PER_S * max(field.shape[:2])
         speed = float(np.abs(field).max()) if field.size else 0.0
-        if not np.isfinite(speed) or speed > top:
+        if not np.isfinite(speed):
+            raise FormatError(f"{what}: motion: the field holds non-finite velocities")
+        if speed > top:
             raise FormatError(
-                f"{what}: motion: velocities up to {speed:.3g} px/s; allowed finite and at most "
+                f"{what}: motion: velocities up to {speed:.3g} px/s; allowed at most "
                 f"{top:g} px/s ({MAX_SPEED_IMAGES_PER_S} image sizes per second)"
             )
     if kind == "hdr" and "mask" in layers:
