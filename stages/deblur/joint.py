@@ -22,11 +22,13 @@ Motion. The motion comes from :mod:`stages.deblur.layers` (a still background an
 rigidly translating layers, with occlusion, estimated from all the measuring bins over
 long baselines) and is kept fixed by default; the dense Gauss-Newton steps on ``u``
 (:func:`motion_step`) are taken only with ``update_motion=True`` (``make bench``,
-bench_layers, prints the layers' velocity errors against the truth). Coarse to fine:
-the motion is estimated on a grid of at most 400 px (:data:`stages.deblur.layers.MAX_WORK_PX`)
-and refined coarse-to-fine in velocity, and the layer boundaries are then placed at
-full resolution (:func:`stages.deblur.layers.labels.refine_boundaries`). The image is solved
-first on 2 x 2 blocks (:mod:`stages.deblur.pyramid`: the exact summed rows of each
+bench_layers, prints the velocities found and the share of the frame given the wrong
+layer). Coarse to fine:
+the motion is estimated on a grid of at most
+:data:`stages.deblur.layers.MAX_WORK_PX` pixels and refined coarse-to-fine in velocity,
+and the layer boundaries are then placed at full resolution
+(:func:`stages.deblur.layers.labels.refine_boundaries`). The image is solved first on
+2 x 2 blocks (:mod:`stages.deblur.pyramid`: the exact summed rows of each
 block, an eighth of the work per iteration), and hdr-static times the prolonged
 (log-domain) coarse correction starts the full-resolution solve
 (``JointOptions.levels``), which then needs one outer step fewer (``make bench`` prints

@@ -25,17 +25,17 @@ heavy-tailed shape of natural-image gradient statistics: Field 1987, Fergus et a
 Descent: steepest descent on ``z = log L`` (so the image stays positive without a
 clamp, and steps are relative, as befits an HDR image and the log-gradient prior), with
 an Armijo backtracking line search on the whole energy: a step is taken only if it
-lowers it. The motion step is
-a fixed normalised step, accepted only if it lowers the data misfit.
+lowers it. The motion step is a fixed normalised step, accepted only if it lowers the
+data misfit.
 
 Weights: the misfit is in rate^2 units, ``(e-/s)^2`` summed over pixels, so the prior
 weights are not the paper's numbers (its images were 8-bit). ``lam_L`` is set on the
 builtin interior, not on the evaluation scenes: the Laplacian of an HDR image is largest
 at its bright edges, so a weight large enough to compete with the misfit there sets the
 global step and leaves the dark pixels at hdr-static; a small one lets the misfit move
-them. The histogram-intersection term is bounded by
-``lam_h`` (``1 - HI`` lies in [0, 1]), so at any weight that keeps the misfit in charge
-it only nudges the gradient statistics.
+them. The histogram-intersection term is bounded by ``lam_h`` (``1 - HI`` lies in
+[0, 1]), so at any weight that keeps the misfit in charge it only nudges the gradient
+statistics.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ from .alignment import layer_cost
 LAYERED_MISS_SHARE = 0.05
 #: ... and when motion explains at least this much of the bins at all (mean truncated
 #: chi-square per bin and point, confidence-weighted; a still scene explains nothing).
-LAYERED_MIN_GAIN = 0.05
+LAYERED_MIN_GAIN = 0.2
 #: Gaussian (working-grid px) of the confidence-weighted smoothing of the dense field.
 DENSE_SMOOTH_PX = 2.0
 
