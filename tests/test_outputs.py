@@ -66,7 +66,7 @@ def _assert_refused(code, err, out, command, words):
 @pytest.mark.parametrize("name", ["h.exr", "h.npz"])
 def test_full_disk_leaves_the_existing_file_and_no_temporaries(tiny_disk, capture_file, name):
     (tiny_disk / name).write_bytes(b"precious")
-    # --force: replacing is allowed, so only the full disk can stop the write.
+    # --force: replacing is asked for, and the full disk must still keep the old file
     code, err, out = _run("hdr-static", capture_file, "-o", tiny_disk / name, "--force")
     _assert_refused(code, err, out, "hdr-static", f"{name}: cannot write: no space left on device")
     assert sorted(os.listdir(tiny_disk)) == [name]
