@@ -46,6 +46,14 @@ def _warp(img: np.ndarray, m: np.ndarray, border: int) -> np.ndarray:
     return out
 
 
+def _reflect_period(shift: float, size: int) -> float:
+    """``shift`` less whole periods of a mirrored border (``2 * size``): the same picture
+    under ``BORDER_REFLECT``, whose cost in OpenCV grows with the distance (a shift of
+    1e9 pixels ran for minutes). Shifts within one period are returned unchanged."""
+    period = 2.0 * size
+    return math.fmod(shift, period) if abs(shift) > period else shift
+
+
 class Motion:
     """Base class: a motion that can render the scene at any time."""
 
@@ -87,7 +95,9 @@ class Translate(Motion):
 
         if self.is_still:
             return scene
-        m = np.array([[1, 0, self.vx * t], [0, 1, self.vy * t]])
+        h, w = scene.shape[:2]
+        dx, dy = _reflect_period(self.vx * t, w), _reflect_period(self.vy * t, h)
+        m = np.array([[1, 0, dx], [0, 1, dy]])
         return _warp(scene, m, cv2.BORDER_REFLECT)
 
     def velocity(self, shape: tuple[int, int]) -> np.ndarray:

@@ -182,3 +182,17 @@ def test_manifest_failure_record_of_the_wrong_type_is_set_aside(tmp_path):
     (tmp_path / MANIFEST_NAME).write_text(json.dumps(data))
     warning = Manifest.load(tmp_path).load_warning
     assert "captures.a.exr.failure.step: must be a valid string" in warning
+
+
+@pytest.mark.timeout(60)
+def test_translation_by_a_billion_pixels_renders_at_once():
+    # Found with the fuzzer's slow motion field: OpenCV's mirrored border walks the
+    # distance, so `vet simulate --motion translate:1e9,0` ran for minutes. A shift by
+    # whole mirror periods (2 x the size) is the same picture.
+    from stages.motion import Translate
+    from stages.scenes import load_scene
+
+    scene = load_scene("builtin:interior", (32, 24)).radiance
+    near = Translate(3.0, -2.0).render(scene, 1.0)
+    far = Translate(64 * 10**7 + 3.0, -48 * 10**7 - 2.0).render(scene, 1.0)
+    np.testing.assert_array_equal(far, near)

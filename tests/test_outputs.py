@@ -115,10 +115,11 @@ def test_read_only_folder(tmp_path, capture_file, monkeypatch):
         subprocess.run(["umount", str(ro)], check=False, capture_output=True)
 
 
-def test_output_that_is_a_symlink_is_refused_before_any_work(tmp_path, capture_file):
+@pytest.mark.parametrize("force", [[], ["--force"]])
+def test_output_that_is_a_symlink_is_refused_before_any_work(tmp_path, capture_file, force):
     (tmp_path / "keep.exr").write_bytes(b"precious")
     (tmp_path / "link.exr").symlink_to(tmp_path / "keep.exr")
-    code, err, out = _run("hdr-static", capture_file, "-o", tmp_path / "link.exr")
+    code, err, out = _run("hdr-static", capture_file, "-o", tmp_path / "link.exr", *force)
     _assert_refused(code, err, out, "hdr-static", "link.exr: is a symbolic link (to ")
     assert (tmp_path / "keep.exr").read_bytes() == b"precious"
     assert (tmp_path / "link.exr").is_symlink()
