@@ -171,7 +171,7 @@ def solve_image(
     diag = data_diag.copy()
     rhs = np.asarray(AT @ (w * obs.y).astype(np.float32), dtype=np.float64)
     if Ab is not None:
-        rhs += Ab.mvt(wb * obs.yb)
+        rhs += Ab.mvt_weighted(wb, obs.yb)
     rhs += anchor_w * anchor
     # Precision a pixel at the reference level would have from its own exposure alone
     # (electrons / rate^2): the prior's weight does not shrink where the data are
@@ -188,7 +188,7 @@ def solve_image(
     def apply_h(x: np.ndarray) -> np.ndarray:
         out = np.asarray(AT @ (w * _mv(A, x)).astype(np.float32), dtype=np.float64)
         if Ab is not None:
-            out += Ab.mvt(wb * Ab.mv(x))
+            out += Ab.normal(x, wb)
         img = x.reshape(h, wd, c)
         gx, gy = grad(img)
         out += grad_adjoint(sx * gx, sy * gy).reshape(n, c)
@@ -340,7 +340,9 @@ def moving_support(A: sp.csr_matrix, Ab: StackedOperator | None = None) -> np.nd
     for M in [A] + (Ab.parts if Ab is not None else []):
         moving = ~static_rows(M)
         if moving.any():
-            free[M.indices[np.repeat(moving, np.diff(M.indptr))]] = True
+            # The stored values are positive weights: a column is reached by a moving
+            # row exactly where this product is non-zero (no per-non-zero temporary).
+            free |= np.asarray(M.T @ moving.astype(np.float32)) != 0
     return free
 
 
@@ -361,7 +363,7 @@ def fuse_still(
     ``fallback`` is kept where no datum has weight (clipped everywhere).
     """
     rhs = np.asarray(A.T @ (obs.w * obs.y).astype(np.float32), dtype=np.float64)
-    rhs += Ab.mvt(obs.wb * obs.yb)
+    rhs += Ab.mvt_weighted(obs.wb, obs.yb)
     d = data_diag[pixels]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(d > 0, rhs[pixels] / d, fallback)
