@@ -9,7 +9,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from stages.deblur import problem
-from stages.deblur.problem import StackedOperator, diag_normal, observations
+from stages.deblur.problem import StackedOperator, diag_normal, observations, product
 from stages.motion import parse_motion
 from stages.rig import RigParams
 from stages.scenes import builtin_interior
@@ -32,6 +32,7 @@ def test_stacked_operator_products_equal_the_dense_stack():
     r = rng.random((180, 2))
     w = rng.random((180, 2))
     np.testing.assert_allclose(op.mv(x), S @ x, rtol=1e-5)
+    np.testing.assert_allclose(product(parts[1], x), S[60:120] @ x, rtol=1e-5)
     np.testing.assert_allclose(op.mvt(r), S.T @ r, rtol=1e-5)
     np.testing.assert_allclose(op.mvt_weighted(w, r), S.T @ (w * r), rtol=1e-5)
     np.testing.assert_allclose(op.normal(x, w), S.T @ (w * (S @ x)), rtol=1e-5)
@@ -92,3 +93,16 @@ def test_bins_normal_product_holds_one_part_at_a_time():
     np.testing.assert_allclose(out, w.reshape(nb, n, c).sum(axis=0)[:, :] * x, rtol=1e-5)
     # The (B N, C) float64 product of the whole stack alone would be nb * n * c * 8 bytes.
     assert peak < 4 * n * c * 8  # (half that of the stack)
+
+
+def test_growing_assembly_buffer_keeps_every_part_in_order():
+    from stages.deblur.operator import _Growing
+
+    rng = np.random.default_rng(3)
+    parts = [rng.integers(0, 1000, rng.integers(0, 50)).astype(np.int32) for _ in range(30)]
+    buf = _Growing(1)  # grows many times
+    for p in parts:
+        buf.append(p, p.astype(np.float32) / 2)
+    idx, dat = buf.finish()
+    np.testing.assert_array_equal(idx, np.concatenate(parts))
+    np.testing.assert_array_equal(dat, np.concatenate(parts) / 2)

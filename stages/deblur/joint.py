@@ -83,6 +83,7 @@ from .problem import (
     grad_adjoint,
     laplacian,
     pcg,
+    product,
 )
 
 log = logging.getLogger(__name__)
@@ -131,7 +132,7 @@ def _diag_AtWA(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
 
 def _mv(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
     """``A @ x`` in the matrix's float32 (no per-call upcast copy of ``A``)."""
-    return np.asarray(A @ x.astype(np.float32), dtype=np.float64)
+    return product(A, x).astype(np.float64)
 
 
 def _mvt(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
