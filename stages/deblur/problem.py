@@ -98,8 +98,8 @@ def product(M: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
     """``M @ x`` for ``x`` of shape (N, C), float32 (rows, C), one column at a time.
 
     scipy's single-vector CSR kernel runs faster than its multi-vector one for a few
-    columns (``make bench``: bench_deblur_scaling), and a float32 ``x`` keeps the product
-    in the matrix's precision with no upcast copy of ``M``.
+    columns, and a float32 ``x`` keeps the product in the matrix's precision with no
+    upcast copy of ``M``.
     """
     out = np.empty((M.shape[0], x.shape[1]), np.float32)
     for k in range(x.shape[1]):
