@@ -68,6 +68,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -187,16 +188,21 @@ def solve_image(
     diag = diag + dsm.reshape(n, c) + anchor_w
 
     def apply_h(x: np.ndarray) -> np.ndarray:
+        # The measuring bins' products run on a second thread beside the VET image's
+        # (scipy's sparse products release the GIL; the two carry similar work).
+        bins = pool.submit(Ab.normal, x, wb) if Ab is not None else None
         out = np.asarray(AT @ (w * _mv(A, x)).astype(np.float32), dtype=np.float64)
-        if Ab is not None:
-            out += Ab.normal(x, wb)
         img = x.reshape(h, wd, c)
         gx, gy = grad(img)
-        out += grad_adjoint(sx * gx, sy * gy).reshape(n, c)
+        smooth = grad_adjoint(sx * gx, sy * gy).reshape(n, c)
+        if bins is not None:
+            out += bins.result()
+        out += smooth
         out += anchor_w * x
         return out
 
-    return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
 
 
 def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
