@@ -253,14 +253,24 @@ def load_motion_field(path: str) -> DenseField:
     return DenseField(path, field)
 
 
+#: The valid form of each motion SPEC kind, for messages.
+FORMS = {
+    "translate": "translate:VX,VY",
+    "object": "object:X,Y,W,H:VX,VY",
+    "rotate": "rotate:DEG_PER_S[,CX,CY]",
+}
+
+
 def _floats(text: str, n: int, spec: str) -> list[float]:
     try:
         vals = [float(v) for v in text.split(",")]
     except ValueError:
         vals = []
     if len(vals) != n or not all(math.isfinite(v) for v in vals):
+        form = FORMS.get(spec.partition(":")[0])
         raise InputError(
             f"invalid motion {spec!r}: expected {n} comma-separated numbers in {text!r}"
+            + (f"; use {form}" if form else "")
         )
     return vals
 
@@ -275,8 +285,13 @@ def parse_motion(spec: str | None) -> Motion:
         vx, vy = _floats(rest, 2, spec)
         return Translate(vx, vy)
     if kind == "object":
-        rect, _, vel = rest.partition(":")
+        rect, sep, vel = rest.partition(":")
         x, y, w, h = _floats(rect, 4, spec)
+        if not sep or not vel.strip():
+            raise InputError(
+                f"invalid motion {spec!r}: the velocity part is missing; "
+                "use object:X,Y,W,H:VX,VY (e.g. object:80,64,160,128:40,0)"
+            )
         vx, vy = _floats(vel, 2, spec)
         if w <= 0 or h <= 0:
             raise InputError(

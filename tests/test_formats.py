@@ -17,6 +17,7 @@ from stages.errors import FormatError, InputError
 from stages.formats import (
     HDRImage,
     Layered,
+    limits,
     read_capture,
     read_hdr,
     read_layered,
@@ -152,7 +153,7 @@ def test_declared_size_over_limit_is_refused_before_allocating(
 ):
     write_capture(tmp_path / "c.npz", small_capture)
     write_capture(tmp_path / "c.exr", small_capture)
-    monkeypatch.setattr(vio, "MAX_INPUT_BYTES", 1000)
+    monkeypatch.setattr(limits, "MAX_INPUT_BYTES", 1000)
     for name in ("c.npz", "c.exr"):
         with pytest.raises(FormatError, match="over the limit"):
             read_layered(tmp_path / name)

@@ -15,15 +15,17 @@ skipping a damaged capture.
 
 from __future__ import annotations
 
-import json
 import os
 import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from tokenize import TokenError
 
+from ..errors import FormatError
 from ..formats.capture import CAPTURE_FILENAMES
 from ..formats.io import EXR_MAGIC, ZIP_MAGIC
+from ..formats.limits import parse_json
 
 #: File extensions that may hold a capture (compared in lower case).
 CAPTURE_EXTENSIONS = (".exr", ".npz")
@@ -146,7 +148,15 @@ def probe_kind(path: str | Path) -> str | None:
             return kind or None
         if magic == ZIP_MAGIC:
             return _npz_kind(path)
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError):
+    except (
+        OSError,
+        ValueError,
+        zipfile.BadZipFile,
+        EOFError,
+        SyntaxError,
+        TokenError,
+        NotImplementedError,
+    ):
         return UNREADABLE
     return UNREADABLE
 
@@ -162,8 +172,8 @@ def _npz_kind(path: str | Path) -> str | None:
         with zf.open("__meta__.npy") as fp:
             text = str(np.lib.format.read_array(fp, allow_pickle=False))
     try:
-        meta = json.loads(text)
-    except json.JSONDecodeError:
+        meta = parse_json(text, str(path))
+    except FormatError:
         return UNREADABLE
     kind = meta.get("kind") if isinstance(meta, dict) else None
     return str(kind) if kind else None
