@@ -106,3 +106,24 @@ def test_growing_assembly_buffer_keeps_every_part_in_order():
     idx, dat = buf.finish()
     np.testing.assert_array_equal(idx, np.concatenate(parts))
     np.testing.assert_array_equal(dat, np.concatenate(parts) / 2)
+
+
+def test_a_vanishing_cross_component_keeps_one_row_of_weights():
+    # A layered estimate of translate:30,0 carries a few thousandths of a px/s along y;
+    # on OpenCV's 1/32 px grid the path stays on its row, so the operator is no larger
+    # than that of the exact motion (before, every sample kept two rows: twice the
+    # non-zeros, memory and product time).
+    from stages.deblur.operator import Window, blur_matrix, vet_windows
+
+    h, w = 24, 40
+    T = np.full((h, w), 0.99975, np.float32)
+    wins = vet_windows(T, 0.99975, 0.00758, 131, 0.002) + [Window(0.1, 0.21, 1.0)]
+    exact = np.zeros((h, w, 2), np.float32)
+    exact[..., 0] = 30.0
+    drift = exact.copy()
+    drift[..., 1] = 0.003
+    A = blur_matrix(exact, wins)
+    B = blur_matrix(drift, wins)
+    assert B.nnz == A.nnz
+    x = np.random.default_rng(4).random(h * w)
+    np.testing.assert_allclose(B @ x, A @ x, rtol=1e-6)

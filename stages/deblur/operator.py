@@ -16,8 +16,9 @@ sample per subframe the model is exactly :func:`stages.simulate.simulate`'s (whi
 the scene at each subframe's mid-time); coarser grouping replaces the motion inside a
 group by its mean position, an error far below the bilinear interpolation's.
 
-``L0`` is sampled bilinearly, with coordinates reflected at the image border
-(OpenCV's ``BORDER_REFLECT``, as the simulator renders translations).
+``L0`` is sampled bilinearly at positions rounded to 1/32 px (OpenCV's interpolation
+grid, on which the simulator's warps sample), with coordinates reflected at the image
+border (OpenCV's ``BORDER_REFLECT``, as the simulator renders translations).
 
 Layered motion with occlusion. A velocity field with only a few distinct values (at
 most :data:`MAX_LAYERS`: a global translation, a still background with moving objects,
@@ -48,6 +49,10 @@ import scipy.sparse as sp
 
 #: Pixels per chunk while assembling a matrix (bounds the temporary memory).
 CHUNK_PIXELS = 1 << 12
+
+#: Sample positions are rounded to 1/POSITION_STEPS px: OpenCV's bilinear warps
+#: (``INTER_BITS`` = 5), with which the simulator renders the motion, use that grid.
+POSITION_STEPS = 32
 
 #: A velocity field with at most this many distinct values is read as layers.
 MAX_LAYERS = 8
@@ -216,6 +221,11 @@ def blur_matrix(
             else:
                 x = px - vel[pix, 0] * t
                 y = py - vel[pix, 1] * t
+            # Positions on OpenCV's interpolation grid (as the simulator's warps sample):
+            # a motion along one axis with a vanishing component along the other then
+            # keeps one row (or column) of bilinear weights, not two.
+            x = np.rint(x * POSITION_STEPS) / POSITION_STEPS
+            y = np.rint(y * POSITION_STEPS) / POSITION_STEPS
             x0 = np.floor(x)
             y0 = np.floor(y)
             fx = x - x0
