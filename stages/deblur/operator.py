@@ -149,6 +149,7 @@ def blur_matrix(
     step_px: float = 1.0,
     max_samples: int = 64,
     min_dt: float | None = None,
+    layers: Layers | None | str = "read",
 ) -> sp.csr_matrix:
     """Assemble the blur operator for one image as a sparse matrix.
 
@@ -165,6 +166,9 @@ def blur_matrix(
     min_dt : float, optional
         Shortest time a sample may represent (e.g. one subframe: no point in resolving
         motion within one); default none.
+    layers : Layers or None, optional
+        ``motion_layers(velocity)`` when the caller has it (several operators of one
+        motion); by default it is read here.
 
     Returns
     -------
@@ -175,7 +179,8 @@ def blur_matrix(
     h, w = velocity.shape[:2]
     n = h * w
     vel = velocity.reshape(n, 2).astype(np.float64)
-    layers = motion_layers(velocity)
+    if isinstance(layers, str):
+        layers = motion_layers(velocity)
     if layers is not None and len(layers.velocity) > 1:
         # Samples along the fastest layer's path: any layer may cover the pixel.
         speed = np.full(n, float(np.hypot(layers.velocity[:, 0], layers.velocity[:, 1]).max()))

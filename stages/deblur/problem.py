@@ -17,7 +17,7 @@ import scipy.sparse as sp
 
 from ..formats.capture import Capture
 from ..physics import bin_may_clip
-from .operator import Window, blur_matrix, vet_windows
+from .operator import Window, blur_matrix, motion_layers, vet_windows
 
 
 @dataclass
@@ -206,10 +206,16 @@ def build_operators(
     jobs = [(obs.windows, step_px)] + [
         (wins, step_px_bins) for wins in (obs.windows_b if obs.yb is not None else [])
     ]
+    layers = motion_layers(velocity)  # once for all the operators of this motion
     # Two threads: the assembly is numpy work that mostly releases the GIL.
     with ThreadPoolExecutor(max_workers=2) as pool:
         mats = list(
-            pool.map(lambda j: blur_matrix(velocity, j[0], step_px=j[1], min_dt=subframe_s), jobs)
+            pool.map(
+                lambda j: blur_matrix(
+                    velocity, j[0], step_px=j[1], min_dt=subframe_s, layers=layers
+                ),
+                jobs,
+            )
         )
     A = mats[0]
     Ab = StackedOperator(mats[1:]) if len(mats) > 1 else None
