@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow fuzz bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data test-hardware sample-hdr clean
+.PHONY: demo test test-slow fuzz bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data test-hardware test-tools sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -52,6 +52,12 @@ test-hardware: $(STAMP)
 CASES ?= 300
 fuzz: $(STAMP)
 	$(BIN)/python -m tests.fuzz $(CASES) 2
+
+# Other tools read vet's files (issue 21): Debian's pfstools, then the tests that pipe
+# vet's HDR files through pfsin | pfstmo_drago03 | pfsout (they skip in make test without it).
+test-tools: $(STAMP)
+	$(SUDO) apt-get install -y -q pfstools
+	$(BIN)/python -m pytest -q -rs tests/test_pfstools.py
 
 bench: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.run

@@ -244,12 +244,13 @@ def results_markdown(ev: Evaluation) -> str:
 
 def rig_sentence(ev: Evaluation) -> str:
     """The rig and radiance scale the captures were rendered with, as one sentence."""
+    defaults = "vet's default rig (the values `vet simulate --help` lists)"
     if ev.rig_changes:
-        rig = "DESIGN.md defaults except " + ", ".join(
+        rig = f"{defaults} except " + ", ".join(
             f"{k} = {v}" for k, v in sorted(ev.rig_changes.items())
         )
     else:
-        rig = "DESIGN.md defaults"
+        rig = defaults
     if ev.reach_subframes is None:
         how = "as given"
     else:

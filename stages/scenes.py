@@ -175,12 +175,12 @@ NOT_SCENES = {
 def scene_file_kind(path: str | Path) -> tuple[str | None, str | None]:
     """What a scene file is, from its header: ``(vet kind, display encoding)``.
 
-    The vet kind is the file's ``vet:kind`` (``None`` for a file vet did not write).
+    The vet kind is the file's ``vetKind`` (or ``vet:kind``) (``None`` for a file vet did not write).
     The encoding is ``None`` for a linear image, else why it is display-referred
     (``"8-bit"``, ``"sRGB-encoded"``, or both).
     """
     from .formats.io import ZIP_MAGIC
-    from .formats.layered import KIND_ATTR, _oiio, read_layered
+    from .formats.layered import KIND_ATTR, LEGACY_ATTRS, _oiio, read_layered
 
     p = Path(path)
     with open(p, "rb") as f:
@@ -192,7 +192,11 @@ def scene_file_kind(path: str | Path) -> tuple[str | None, str | None]:
         return None, None
     try:
         spec = inp.spec()
-        kind = spec.get_string_attribute(KIND_ATTR, "") or None
+        kind = (
+            spec.get_string_attribute(KIND_ATTR, "")
+            or spec.get_string_attribute(LEGACY_ATTRS[KIND_ATTR], "")
+            or None
+        )
         colorspace = spec.get_string_attribute("oiio:ColorSpace", "").lower()
         basetype = spec.format.basetype
         eight_bit = basetype in (oiio.UINT8, oiio.INT8)

@@ -66,7 +66,8 @@ def _assert_refused(code, err, out, command, words):
 @pytest.mark.parametrize("name", ["h.exr", "h.npz"])
 def test_full_disk_leaves_the_existing_file_and_no_temporaries(tiny_disk, capture_file, name):
     (tiny_disk / name).write_bytes(b"precious")
-    code, err, out = _run("hdr-static", capture_file, "-o", tiny_disk / name)
+    # --force: replacing is asked for, and the full disk must still keep the old file
+    code, err, out = _run("hdr-static", capture_file, "-o", tiny_disk / name, "--force")
     _assert_refused(code, err, out, "hdr-static", f"{name}: cannot write: no space left on device")
     assert sorted(os.listdir(tiny_disk)) == [name]
     assert (tiny_disk / name).read_bytes() == b"precious"
@@ -89,7 +90,7 @@ def test_no_space_left_simulated(tmp_path, capture_file, monkeypatch):
 
     monkeypatch.setattr(layered, "write_npz", half_then_full)
     (tmp_path / "h.npz").write_bytes(b"precious")
-    code, err, out = _run("hdr-static", capture_file, "-o", tmp_path / "h.npz")
+    code, err, out = _run("hdr-static", capture_file, "-o", tmp_path / "h.npz", "--force")
     _assert_refused(code, err, out, "hdr-static", "h.npz: cannot write: no space left on device")
     assert sorted(os.listdir(tmp_path)) == ["h.npz"]
     assert (tmp_path / "h.npz").read_bytes() == b"precious"

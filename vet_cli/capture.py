@@ -100,6 +100,9 @@ def cli(
 
         cal = read_calibration(calibration)
         overrides.update(calibration_changes(cal))
+        if rig_spec == "sim" and size is None:
+            # The emulated rig is the calibrated one: its sensor, the scene resampled to it.
+            size = tuple(int(v) for v in cal.sensor_size)
     sim = SimOptions(
         scene=scene,
         motion=motion,
@@ -117,6 +120,7 @@ def cli(
             raise InputError(
                 f"{calibration}: made for a {cal.sensor_size[0]}x{cal.sensor_size[1]} sensor, "
                 f"but the rig's is {rig.params.sensor_size[0]}x{rig.params.sensor_size[1]}"
+                + (" (--size sets the emulated rig's)" if rig_spec == "sim" else "")
             )
         log.debug("capture: rig %s, sensor %dx%d", rig.name, *rig.params.sensor_size)
         with Progress("capture") as progress:

@@ -103,6 +103,21 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
     return suppress_small_motion(vel), "dense"
 
 
+def deblur_mask(static_mask: np.ndarray, L: np.ndarray, L_init: np.ndarray) -> np.ndarray:
+    """The mask of a deblurred image (codes of :data:`stages.formats.hdr.MASK_CODES`).
+
+    hdr-static's codes hold where the deblur kept its value. Where the deblur replaced a
+    pixel (``L`` differs from hdr-static's ``L_init``, both (H, W, C)), code 3 (the
+    noise-equivalent radiance) no longer describes the value and becomes 0; codes 1 (the
+    VET pixel saturated, so the value comes from the measuring images) and 2 (a lower
+    bound, which the deblur keeps) still hold. Returns a new (H, W) uint8 array.
+    """
+    mask = static_mask.copy()
+    replaced = np.any(L != L_init, axis=2)
+    mask[replaced & (mask == 3)] = 0
+    return mask
+
+
 #: Speeds below this (px/s; under two pixels of travel in a 1 s frame) are flow noise
 #: for the purpose of deblurring and are set to zero, so a still scene stays still.
 MIN_SPEED_PX_S = 2.0
@@ -275,6 +290,7 @@ def deblur(
         params, extra = {}, {}  # (the paper's prior smooths every pixel)
     # Pixels hdr-static could only bound keep its value (the deblur has no data there).
     L = np.where(bound_only[..., None], np.maximum(L, L_init), L)
+    mask = deblur_mask(static.mask, L, L_init)
     radiance, units = rate_to_output_units(cap, L.astype(np.float32))
     meta = dict(static.meta)
     meta.update(
@@ -291,6 +307,6 @@ def deblur(
         radiance=radiance.astype(np.float32),
         channels=list(cap.channels),
         meta=meta,
-        mask=static.mask,
+        mask=mask,
         exposure_time=cap.T,
     ), vel

@@ -6,7 +6,9 @@ float32 with named channels, plus one JSON metadata dictionary.
 
 EXR layout: channel ``"{layer}.{channel}"`` (the unnamed layer ``""`` uses bare channel
 names such as ``R, G, B`` so that viewers show it); metadata as the string attributes
-``vet:kind`` and ``vet:meta`` (JSON), readable with ``oiiotool --info -v``.
+``vetKind`` and ``vetMeta`` (JSON, continued in ``vetMeta0001``... past 900 characters, so
+that tools reading attributes as lines of text take them whole), readable with ``oiiotool
+--info -v`` (files written before use ``vet:kind`` and ``vet:meta``, still read).
 
 NPZ layout: array ``layer:{name}`` per layer, plus 0-d unicode arrays ``__channels__``
 and ``__meta__`` holding JSON. Nothing is pickled; reading refuses object arrays.
@@ -31,8 +33,11 @@ from . import limits, schema
 from .io import atomic_output, sniff, spooled_input
 from .names import format_for_output
 
-META_ATTR = "vet:meta"
-KIND_ATTR = "vet:kind"
+META_ATTR = "vetMeta"
+KIND_ATTR = "vetKind"
+#: The names vet wrote before: ``prefix:name`` attributes read as ``channel:tag`` by some
+#: tools (pfstools warns there is no channel ``vet``). Still read.
+LEGACY_ATTRS = {META_ATTR: "vet:meta", KIND_ATTR: "vet:kind"}
 
 
 @dataclass
@@ -99,7 +104,9 @@ def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | N
     spec.channelnames = tuple(names)
     spec.attribute("compression", compression)
     spec.attribute(KIND_ATTR, str(data.meta.get("kind", "")))
-    spec.attribute(META_ATTR, json.dumps(data.meta, sort_keys=True, default=_json_default))
+    text = json.dumps(data.meta, sort_keys=True, default=_json_default)
+    for name, part in meta_chunks(text):
+        spec.attribute(name, part)
     out = oiio.ImageOutput.create(str(path))
     if out is None or not out.open(str(path), spec):
         raise OutputError(f"{what}: cannot write EXR ({_last_error(oiio.geterror, '?')})")
@@ -108,6 +115,35 @@ def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | N
             raise OutputError(f"{what}: cannot write EXR ({_last_error(out.geterror, '?')})")
     finally:
         out.close()
+
+
+#: Characters of metadata per EXR string attribute: tools that turn attributes into text
+#: lines of at most 1024 bytes (pfstools' tags) read each one whole.
+META_CHUNK_CHARS = 900
+
+
+def meta_chunks(text: str) -> list[tuple[str, str]]:
+    """The metadata JSON as EXR attributes: ``vetMeta`` holds the first
+    :data:`META_CHUNK_CHARS` characters, ``vetMeta0001``, ``vetMeta0002``... the rest."""
+    parts = [text[i : i + META_CHUNK_CHARS] for i in range(0, len(text), META_CHUNK_CHARS)]
+    return [
+        (META_ATTR if i == 0 else f"{META_ATTR}{i:04d}", p) for i, p in enumerate(parts or [""])
+    ]
+
+
+def _joined_meta(spec: Any) -> str:
+    """The metadata JSON of an EXR header: ``vetMeta`` and its continuations, or the
+    single ``vet:meta`` attribute of files written before."""
+    text = spec.get_string_attribute(META_ATTR, "")
+    if not text:
+        return spec.get_string_attribute(LEGACY_ATTRS[META_ATTR], "")
+    parts = [text]
+    for i in range(1, 10**4):
+        part = spec.get_string_attribute(f"{META_ATTR}{i:04d}", "")
+        if not part:
+            break
+        parts.append(part)
+    return "".join(parts)
 
 
 def _last_error(geterror: Callable[[], str], default: str) -> str:
@@ -162,7 +198,9 @@ def _read_oiio_pixels(
     if nch > MAX_CHANNELS:
         raise FormatError(f"{what}: image has {nch} channels, over the limit of {MAX_CHANNELS}")
     limits.check_declared(w * h * nch * 4, Path(path).stat().st_size, what)
-    values = {a: spec.get_string_attribute(a, "") for a in attrs}
+    values = {
+        a: _joined_meta(spec) if a == META_ATTR else spec.get_string_attribute(a, "") for a in attrs
+    }
     if before_pixels is not None:
         before_pixels(values, h, w)
     pixels = inp.read_image(0, 0, 0, nch, "float")
@@ -180,8 +218,9 @@ def read_exr(path: Path, what: str | None = None) -> Layered:
     meta: dict[str, Any] = {}
 
     def check(values: dict[str, str], h: int, w: int) -> None:
-        if values[META_ATTR]:
-            meta.update(_parse_meta(values[META_ATTR], what))
+        text = values[META_ATTR]
+        if text:
+            meta.update(_parse_meta(text, what))
             schema.check_meta(meta, what)
         _check_declared_size(declared_size(meta), (h, w), "", what)
 
