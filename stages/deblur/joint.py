@@ -63,6 +63,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -78,6 +79,7 @@ from .problem import (
     grad_adjoint,
     laplacian,
     pcg,
+    product,
 )
 
 log = logging.getLogger(__name__)
@@ -126,7 +128,7 @@ def _diag_AtWA(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
 
 def _mv(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
     """``A @ x`` in the matrix's float32 (no per-call upcast copy of ``A``)."""
-    return np.asarray(A @ x.astype(np.float32), dtype=np.float64)
+    return product(A, x).astype(np.float64)
 
 
 def _mvt(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
@@ -166,7 +168,7 @@ def solve_image(
     diag = data_diag.copy()
     rhs = np.asarray(AT @ (w * obs.y).astype(np.float32), dtype=np.float64)
     if Ab is not None:
-        rhs += Ab.mvt(wb * obs.yb)
+        rhs += Ab.mvt_weighted(wb, obs.yb)
     rhs += anchor_w * anchor
     # Precision a pixel at the reference level would have from its own exposure alone
     # (electrons / rate^2): the prior's weight does not shrink where the data are
@@ -181,16 +183,21 @@ def solve_image(
     diag = diag + dsm.reshape(n, c) + anchor_w
 
     def apply_h(x: np.ndarray) -> np.ndarray:
+        # The measuring bins' products run on a second thread beside the VET image's
+        # (scipy's sparse products release the GIL; the two carry similar work).
+        bins = pool.submit(Ab.normal, x, wb) if Ab is not None else None
         out = np.asarray(AT @ (w * _mv(A, x)).astype(np.float32), dtype=np.float64)
-        if Ab is not None:
-            out += Ab.mvt(wb * Ab.mv(x))
         img = x.reshape(h, wd, c)
         gx, gy = grad(img)
-        out += grad_adjoint(sx * gx, sy * gy).reshape(n, c)
+        smooth = grad_adjoint(sx * gx, sy * gy).reshape(n, c)
+        if bins is not None:
+            out += bins.result()
+        out += smooth
         out += anchor_w * x
         return out
 
-    return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
 
 
 def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
@@ -335,7 +342,9 @@ def moving_support(A: sp.csr_matrix, Ab: StackedOperator | None = None) -> np.nd
     for M in [A] + (Ab.parts if Ab is not None else []):
         moving = ~static_rows(M)
         if moving.any():
-            free[M.indices[np.repeat(moving, np.diff(M.indptr))]] = True
+            # The stored values are positive weights: a column is reached by a moving
+            # row exactly where this product is non-zero (no per-non-zero temporary).
+            free |= np.asarray(M.T @ moving.astype(np.float32)) != 0
     return free
 
 
@@ -356,7 +365,7 @@ def fuse_still(
     ``fallback`` is kept where no datum has weight (clipped everywhere).
     """
     rhs = np.asarray(A.T @ (obs.w * obs.y).astype(np.float32), dtype=np.float64)
-    rhs += Ab.mvt(obs.wb * obs.yb)
+    rhs += Ab.mvt_weighted(obs.wb, obs.yb)
     d = data_diag[pixels]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(d > 0, rhs[pixels] / d, fallback)
