@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data sample-hdr clean
+.PHONY: demo test test-slow fuzz bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data test-hardware test-tools sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -16,8 +16,9 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 DEMO_DIR := demo_out
+# The demo makes its folder afresh (vet replaces no existing output without --force).
 demo: $(STAMP)
-	@mkdir -p $(DEMO_DIR)
+	@rm -rf $(DEMO_DIR) && mkdir -p $(DEMO_DIR)
 	$(VET) simulate builtin:interior --size 640x512 --seed 1 -o $(DEMO_DIR)/still.exr
 	$(VET) hdr-static $(DEMO_DIR)/still.exr -o $(DEMO_DIR)/still.hdr.exr
 	$(VET) tonemap $(DEMO_DIR)/still.hdr.exr -o $(DEMO_DIR)/still.png
@@ -35,6 +36,28 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
+
+# GenICam cameras (issue 20): Debian's Aravis (its fake GigE Vision camera included) and
+# PyGObject in the venv, then the camera tests against two fake cameras on loopback (the
+# second on 127.0.0.2, added to lo when root may; else one fake camera and a recorded frame).
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+test-hardware: $(STAMP)
+	$(SUDO) apt-get install -y -q aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config
+	$(BIN)/pip install --quiet 'PyGObject<3.51'
+	-ip addr show lo | grep -q 127.0.0.2 || $(SUDO) ip addr add 127.0.0.2/8 dev lo
+	VET_REQUIRE_HARDWARE=1 $(BIN)/python -m pytest -q -rs tests/test_genicam.py
+
+# A longer fuzz campaign than `make test` runs (issue 22): CASES mutated files of each kind
+# through every command that reads them; prints counts per reader and outcome.
+CASES ?= 300
+fuzz: $(STAMP)
+	$(BIN)/python -m tests.fuzz $(CASES) 2
+
+# Other tools read vet's files (issue 21): Debian's pfstools, then the tests that pipe
+# vet's HDR files through pfsin | pfstmo_drago03 | pfsout (they skip in make test without it).
+test-tools: $(STAMP)
+	$(SUDO) apt-get install -y -q pfstools
+	$(BIN)/python -m pytest -q -rs tests/test_pfstools.py
 
 bench: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.run

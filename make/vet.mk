@@ -2,9 +2,12 @@
 #
 # Include it from your own Makefile after setting (or accept the defaults):
 #
-#   VET      = vet            # the vet command (e.g. .venv/bin/vet)
-#   CAPTURES = captures       # folder of captures, searched recursively
-#   OUT      = out            # output folder; mirrors CAPTURES' layout
+#   # the vet command (e.g. .venv/bin/vet)
+#   VET      = vet
+#   # folder of captures, searched recursively
+#   CAPTURES = captures
+#   # output folder; mirrors CAPTURES' layout
+#   OUT      = out
 #   include path/to/vet.mk
 #   all: vet-all
 #
@@ -17,7 +20,9 @@
 #
 # Make rebuilds only the outputs older than their capture, and every vet command writes
 # atomically, so an interrupted `make -j` never leaves a truncated output that a later
-# make would take for finished. Targets: vet-all, vet-hdr, vet-png, vet-clean, vet-list.
+# make would take for finished. The recipes pass --force: Make has decided the target is
+# out of date, so replacing it is what is asked (vet refuses to replace files otherwise).
+# Targets: vet-all, vet-hdr, vet-png, vet-clean, vet-list.
 # Make does not track options: after changing VET_TONEMAP_FLAGS run `make -B vet-png`
 # (or use `vet batch`, whose manifest does). Every .exr/.npz under CAPTURES is taken for
 # a capture (vet batch instead skips files whose metadata says otherwise); files inside
@@ -26,6 +31,11 @@
 VET      ?= vet
 CAPTURES ?= captures
 OUT      ?= out
+# A value set as `CAPTURES = captures   # comment` keeps the spaces before the comment:
+# strip them, or every path built from it would hold them.
+override VET      := $(strip $(VET))
+override CAPTURES := $(strip $(CAPTURES))
+override OUT      := $(strip $(OUT))
 # Extra options for each command, e.g. VET_TONEMAP_FLAGS = --operator reinhard
 VET_HDR_FLAGS     ?=
 VET_TONEMAP_FLAGS ?=
@@ -56,19 +66,19 @@ vet-clean:
 # also match OUT/x/capture.hdr.exr, which is not a target.
 $(OUT)/%.hdr.exr: $(CAPTURES)/%/capture.exr
 	@mkdir -p $(@D)
-	$(VET) hdr-static $(VET_HDR_FLAGS) $< -o $@
+	$(VET) hdr-static --force $(VET_HDR_FLAGS) $< -o $@
 
 $(OUT)/%.hdr.exr: $(CAPTURES)/%/capture.npz
 	@mkdir -p $(@D)
-	$(VET) hdr-static $(VET_HDR_FLAGS) $< -o $@
+	$(VET) hdr-static --force $(VET_HDR_FLAGS) $< -o $@
 
 $(OUT)/%.hdr.exr: $(CAPTURES)/%.exr
 	@mkdir -p $(@D)
-	$(VET) hdr-static $(VET_HDR_FLAGS) $< -o $@
+	$(VET) hdr-static --force $(VET_HDR_FLAGS) $< -o $@
 
 $(OUT)/%.hdr.exr: $(CAPTURES)/%.npz
 	@mkdir -p $(@D)
-	$(VET) hdr-static $(VET_HDR_FLAGS) $< -o $@
+	$(VET) hdr-static --force $(VET_HDR_FLAGS) $< -o $@
 
 $(OUT)/%.png: $(OUT)/%.hdr.exr
-	$(VET) tonemap $(VET_TONEMAP_FLAGS) $< -o $@
+	$(VET) tonemap --force $(VET_TONEMAP_FLAGS) $< -o $@

@@ -116,6 +116,7 @@ def capture_frame(
     clog = CaptureLog()
     raw = None
     books = None
+    stamps: list[float] = []  # camera timestamp of the frame used for each subframe
     raw_tmp = folder / ".measure_raw.npy.part"
     n_done = 0
     try:
@@ -142,6 +143,9 @@ def capture_frame(
             t0 = rig.start_trigger(s0)
             if hasattr(rig.measurement, "start_at"):
                 rig.measurement.start_at(t0)
+        else:
+            rig.vet.open()
+            rig.vet.start_exposure()  # a host-triggered VET camera starts with the frame
         clog.info("frame 0 started at device subframe %d", s0)
         nch = len(rig.channels)
         edges = measure_bin_edges(k_sub, measure_bins) if measure_bins > 0 else None
@@ -168,7 +172,6 @@ def capture_frame(
             if raw is not None:
                 raw[kk] = frame_data  # integer DN in [-black level, 4095]: exact in int16
 
-        stamps: list[float] = []
         dropped: list[int] = []
         step_ms: list[float] = []
         sent_cells = 0
@@ -252,6 +255,8 @@ def capture_frame(
                 "late_closures": late,
                 "link": stats,
                 "frame_start_subframe": int(s0),
+                "measure_timestamps_s": [round(float(t), 9) for t in stamps],
+                "cameras": {"measurement": rig.measurement.describe(), "vet": rig.vet.describe()},
             }
         )
         clog.info("host step per subframe: median %.2f ms, p99 %.2f ms", *_pct(step_ms, [50, 99]))
@@ -313,6 +318,7 @@ def capture_frame(
                     json.dumps(
                         {
                             "subframes_valid": n_done,
+                            "timestamps_s": [round(float(t), 9) for t in stamps],
                             "subframe_s": params.subframe_s,
                             "dtype": "int16 DN, black-level subtracted",
                         }

@@ -19,5 +19,9 @@ class FormatError(InputError):
     """A file that is not a valid vet file of the expected kind."""
 
 
+class OutputError(VetError):
+    """An output that could not be written (full disk, read-only folder, closed pipe)."""
+
+
 class DeviceError(VetError):
     """A camera or LCoS controller failed, disconnected or broke the protocol."""

@@ -83,6 +83,7 @@ def run_evaluation(
     rig_changes: dict[str, Any] | None = None,
     scale: float | None = None,
     reach_subframes: float = 1.0,
+    on_step: Callable[[int, int], None] | None = None,
 ) -> Evaluation:
     """Simulate, reconstruct and score the methods in ``rows`` (module docstring).
 
@@ -90,6 +91,9 @@ def run_evaluation(
     DESIGN.md's defaults; ``scale`` and ``reach_subframes`` set the radiance scale as in
     :func:`stages.simulate.simulate`. Only the comparison captures that ``rows`` needs
     are rendered; the VET capture always is, since it defines the dark/bright split.
+    ``progress(message)`` names each part as it starts (the simulation, then one per
+    row); ``on_step(done, total)`` reports the work done in hundredths of a part
+    (``total = 100 * parts``), from ``(0, total)`` to ``(total, total)``.
     """
     from .deblur import deblur
     from .hdr_static import hdr_static
@@ -103,12 +107,20 @@ def run_evaluation(
     if unknown or not rows:
         raise ValueError(f"unknown methods {unknown}; choose from {', '.join(ROWS)}")
     say = progress or (lambda msg: None)
+    step = on_step or (lambda done, total: None)
+    units = 100 * (1 + len(rows))
+
+    def part(i: int) -> Callable[[int, int], None]:
+        """Progress within part ``i`` (0: the simulation) as the evaluation's."""
+        return lambda d, t: step(100 * i + min(100, 100 * d // max(t, 1)), units)
+
     scene = load_scene(scene_spec, size)
     h, w = scene.radiance.shape[:2]
     motion = parse_motion(motion_spec)
     changes = dict(rig_changes or {})
     rig = RigParams(**{**changes, "sensor_size": (w, h)})
     renders = ["vet"] + [m for m in ("long", "short", "adaptive-attenuation") if m in rows]
+    step(0, units)
     say(f"simulating {w}x{h} {motion.spec}")
     t0 = time.perf_counter()
     caps = simulate(
@@ -119,6 +131,7 @@ def run_evaluation(
         methods=renders,
         scale=scale,
         reach_subframes=reach_subframes,
+        progress=part(0),
     )
     sim_s = time.perf_counter() - t0
     vet = caps["vet"]
@@ -139,19 +152,20 @@ def run_evaluation(
     ev.floor = measurable_floor(rig, ev.radiance_scale)
     ev.floor_e = ev.floor * ev.radiance_scale * rig.frame_s
     ev.runtime_s["simulate"] = sim_s
-    plan: dict[str, Callable[[], Any]] = {
-        "vet-static": lambda: (hdr_static(vet), None),
-        "adaptive-attenuation": lambda: (hdr_static(caps["adaptive-attenuation"]), None),
-        "long": lambda: (hdr_static(caps["long"]), None),
-        "short": lambda: (hdr_static(caps["short"]), None),
-        "vet-deblur": lambda: deblur(vet, "vet"),
-        "vet-deblur-paper": lambda: deblur(vet, "paper"),
-        "vet-deblur-oracle": lambda: deblur(vet, "vet", motion_init="truth"),
+    plan: dict[str, Callable[[Callable[[int, int], None]], Any]] = {
+        "vet-static": lambda p: (hdr_static(vet), None),
+        "adaptive-attenuation": lambda p: (hdr_static(caps["adaptive-attenuation"]), None),
+        "long": lambda p: (hdr_static(caps["long"]), None),
+        "short": lambda p: (hdr_static(caps["short"]), None),
+        "vet-deblur": lambda p: deblur(vet, "vet", progress=p),
+        "vet-deblur-paper": lambda p: deblur(vet, "paper", progress=p),
+        "vet-deblur-oracle": lambda p: deblur(vet, "vet", motion_init="truth", progress=p),
     }
-    for name in rows:
+    for i, name in enumerate(rows):
+        step(100 * (1 + i), units)
         say(f"reconstructing {name}")
         t0 = time.perf_counter()
-        img, vel = plan[name]()
+        img, vel = plan[name](part(1 + i))
         ev.runtime_s[name] = time.perf_counter() - t0
         if name == "vet-deblur":
             ev.velocity = vel
@@ -163,6 +177,7 @@ def run_evaluation(
             ev.scores[name]["dark"]["rms"],
             ev.runtime_s[name],
         )
+    step(units, units)
     return ev
 
 
@@ -229,12 +244,13 @@ def results_markdown(ev: Evaluation) -> str:
 
 def rig_sentence(ev: Evaluation) -> str:
     """The rig and radiance scale the captures were rendered with, as one sentence."""
+    defaults = "vet's default rig (the values `vet simulate --help` lists)"
     if ev.rig_changes:
-        rig = "DESIGN.md defaults except " + ", ".join(
+        rig = f"{defaults} except " + ", ".join(
             f"{k} = {v}" for k, v in sorted(ev.rig_changes.items())
         )
     else:
-        rig = "DESIGN.md defaults"
+        rig = defaults
     if ev.reach_subframes is None:
         how = "as given"
     else:

@@ -316,5 +316,5 @@ def _ms_ticks(lo_s: float, hi_s: float) -> list[float]:
 
 
 def _format_ms(seconds: float) -> str:
-    """Seconds as a short millisecond label: 0.00758 -> "7.58", 0.99975 -> "999.75"."""
+    """Seconds as a millisecond label of at most 5 significant digits: 0.0075 -> "7.5"."""
     return f"{seconds * 1e3:.5g}"

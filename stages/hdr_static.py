@@ -14,7 +14,9 @@ divided by the capture's radiance scale for simulated captures (scene units), el
 multiplied by the gain (DN/s).
 
 Pixels the VET sensor saturated are recovered from the first measuring-image bin (a short
-exposure of the same light); pixels saturated there too keep a lower bound; pixels below
+exposure of the same light), all channels alike; where the bin contradicts the VET image
+(it lies well below the clipped value's lower bound: the scene moved) the pixel is flagged
+doubtful; pixels saturated there too keep a lower bound; pixels below
 the noise floor get the noise-equivalent radiance. Each case is flagged in the mask
 (:data:`~stages.formats.hdr.MASK_CODES`), never silently wrong.
 """
@@ -29,6 +31,10 @@ from .physics import bin_may_clip
 
 #: A pixel whose signal is below this many electrons carries no information.
 NOISE_FLOOR_E = 1.0
+#: A saturated VET pixel's recovery from the first measuring bin contradicts the VET
+#: image when the bin's rate lies this many of its standard deviations below the VET
+#: image's lower bound in a clipped channel.
+CONTRADICTION_SIGMA = 4.0
 
 
 def effective_exposure(cap: Capture) -> np.ndarray:
@@ -75,14 +81,20 @@ def hdr_static(cap: Capture) -> HDRImage:
     vet_sat = cap.I >= np.float32(rig.saturation_dn)
     if vet_sat.any():
         sat_px = vet_sat.any(axis=2)
-        rec, rec_ok = _rate_from_measure(cap)
+        rec, rec_ok, rec_sd = _rate_from_measure(cap)
         if rec is not None:
             use = sat_px & rec_ok
             # The first bin measures the light directly, unclipped, nearer to t = 0. The
             # clipped VET value only bounds the mean over [0, T], which a moving scene
             # breaks (a bright edge arriving late pushes it far above the scene at t=0).
+            # A clipped VET value bounds the mean rate over the exposure from below. When
+            # the bin lies far below that bound (a bright edge arrived after the bin: the
+            # scene moved), the two disagree: the bin's value stands (the scene nearer
+            # t = 0) but the pixel is flagged doubtful.
+            contra = use & np.any((rec < rate - CONTRADICTION_SIGMA * rec_sd) & vet_sat, axis=2)
             rate = np.where(use[..., None], rec, rate)
             mask[use] = 1
+            mask[contra] = 4
             mask[sat_px & ~rec_ok] = 2
             lower = sat_px & ~rec_ok
             rate = np.where(lower[..., None], np.maximum(rec, rate), rate)
@@ -113,10 +125,13 @@ def hdr_static(cap: Capture) -> HDRImage:
     )
 
 
-def _rate_from_measure(cap: Capture) -> tuple[np.ndarray | None, np.ndarray]:
-    """Rate (e-/s at the VET sensor) from the first measuring bin, and where it is valid."""
+def _rate_from_measure(
+    cap: Capture,
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray | None]:
+    """Rate (e-/s at the VET sensor) from the first measuring bin (H, W, C), where it is
+    valid (H, W), and its noise standard deviation (H, W, C), e-/s."""
     if cap.measure is None or cap.measure_times is None:
-        return None, np.zeros(cap.shape, bool)
+        return None, np.zeros(cap.shape, bool), None
     rig = cap.rig
     g = np.float32(rig.gain_dn_per_e)
     t0, t1 = (float(v) for v in cap.measure_times[0])
@@ -129,4 +144,6 @@ def _rate_from_measure(cap: Capture) -> tuple[np.ndarray | None, np.ndarray]:
     # Valid unless some subframe of the bin may have clipped; for a still pixel the
     # subframes are alike, so the bin mean per subframe tells.
     ok = ~bin_may_clip(m0 / np.float32(n_sub), rig)
-    return rate.astype(np.float32), ok
+    var_e = np.maximum(m0 / g, 0) + np.float32(n_sub * rig.read_noise_e**2)
+    sd = np.sqrt(var_e) / np.float32(dur * rig.measure_fraction)
+    return rate.astype(np.float32), ok, sd.astype(np.float32)

@@ -26,7 +26,7 @@ def describe(path: str | Path, layers: bool = True) -> dict[str, Any]:
                 "channels": data.channels[name],
                 "min": float(finite.min()) if finite.size else None,
                 "max": float(finite.max()) if finite.size else None,
-                "mean": float(finite.mean()) if finite.size else None,
+                "mean": float(finite.mean(dtype=np.float64)) if finite.size else None,
                 "nonfinite": int(arr.size - finite.size),
             }
         out["layers"] = summary

@@ -46,6 +46,14 @@ def _warp(img: np.ndarray, m: np.ndarray, border: int) -> np.ndarray:
     return out
 
 
+def _reflect_period(shift: float, size: int) -> float:
+    """``shift`` less whole periods of a mirrored border (``2 * size``): the same picture
+    under ``BORDER_REFLECT``, whose cost in OpenCV grows with the distance (a shift of
+    1e9 pixels ran for minutes). Shifts within one period are returned unchanged."""
+    period = 2.0 * size
+    return math.fmod(shift, period) if abs(shift) > period else shift
+
+
 class Motion:
     """Base class: a motion that can render the scene at any time."""
 
@@ -87,7 +95,9 @@ class Translate(Motion):
 
         if self.is_still:
             return scene
-        m = np.array([[1, 0, self.vx * t], [0, 1, self.vy * t]])
+        h, w = scene.shape[:2]
+        dx, dy = _reflect_period(self.vx * t, w), _reflect_period(self.vy * t, h)
+        m = np.array([[1, 0, dx], [0, 1, dy]])
         return _warp(scene, m, cv2.BORDER_REFLECT)
 
     def velocity(self, shape: tuple[int, int]) -> np.ndarray:
@@ -253,14 +263,24 @@ def load_motion_field(path: str) -> DenseField:
     return DenseField(path, field)
 
 
+#: The valid form of each motion SPEC kind, for messages.
+FORMS = {
+    "translate": "translate:VX,VY",
+    "object": "object:X,Y,W,H:VX,VY",
+    "rotate": "rotate:DEG_PER_S[,CX,CY]",
+}
+
+
 def _floats(text: str, n: int, spec: str) -> list[float]:
     try:
         vals = [float(v) for v in text.split(",")]
     except ValueError:
         vals = []
     if len(vals) != n or not all(math.isfinite(v) for v in vals):
+        form = FORMS.get(spec.partition(":")[0])
         raise InputError(
             f"invalid motion {spec!r}: expected {n} comma-separated numbers in {text!r}"
+            + (f"; use {form}" if form else "")
         )
     return vals
 
@@ -275,8 +295,13 @@ def parse_motion(spec: str | None) -> Motion:
         vx, vy = _floats(rest, 2, spec)
         return Translate(vx, vy)
     if kind == "object":
-        rect, _, vel = rest.partition(":")
+        rect, sep, vel = rest.partition(":")
         x, y, w, h = _floats(rect, 4, spec)
+        if not sep or not vel.strip():
+            raise InputError(
+                f"invalid motion {spec!r}: the velocity part is missing; "
+                "use object:X,Y,W,H:VX,VY (e.g. object:80,64,160,128:40,0)"
+            )
         vx, vy = _floats(vel, 2, spec)
         if w <= 0 or h <= 0:
             raise InputError(

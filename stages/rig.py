@@ -15,6 +15,10 @@ import numpy as np
 
 from .errors import InputError
 
+#: Most subframes one frame may hold (``frame_s / subframe_s``): bounds the work and
+#: memory of every stage that walks the subframes.
+MAX_SUBFRAMES = 100_000
+
 
 def default_homography(
     lcos_cells: tuple[int, int], sensor_size: tuple[int, int]
@@ -97,6 +101,11 @@ class RigParams:
         checks = [
             (self.frame_s > 0, "frame length must be positive"),
             (0 < self.subframe_s <= self.frame_s, "subframe length must be in (0, frame length]"),
+            (
+                self.frame_s <= MAX_SUBFRAMES * self.subframe_s,
+                f"a frame may hold at most {MAX_SUBFRAMES} subframes "
+                f"(subframe length >= frame length / {MAX_SUBFRAMES})",
+            ),
             (self.full_well_e > 0, "full well must be positive"),
             (self.read_noise_e >= 0, "read noise must be non-negative"),
             (4 <= self.adc_bits <= 24, "ADC depth must be 4 to 24 bits"),

@@ -163,6 +163,52 @@ BUILTIN_SCENES = {
 # --- loading ----------------------------------------------------------------------------
 
 
+#: vet file kinds that are not radiance: refused as scenes.
+NOT_SCENES = {
+    "capture": "a capture records DN, not radiance; vet hdr-static or vet deblur make one "
+    "into an HDR image",
+    "motion": "a motion file holds velocities (give it to --motion field:PATH)",
+    "calibration": "a calibration holds rig maps (give it to vet capture --calibration)",
+}
+
+
+def scene_file_kind(path: str | Path) -> tuple[str | None, str | None]:
+    """What a scene file is, from its header: ``(vet kind, display encoding)``.
+
+    The vet kind is the file's ``vetKind`` (or ``vet:kind``) (``None`` for a file vet did not write).
+    The encoding is ``None`` for a linear image, else why it is display-referred
+    (``"8-bit"``, ``"sRGB-encoded"``, or both).
+    """
+    from .formats.io import ZIP_MAGIC
+    from .formats.layered import KIND_ATTR, LEGACY_ATTRS, _oiio, read_layered
+
+    p = Path(path)
+    with open(p, "rb") as f:
+        if f.read(4) == ZIP_MAGIC:
+            return str(read_layered(p).meta.get("kind") or "") or None, None
+    oiio = _oiio()
+    inp = oiio.ImageInput.open(str(p))
+    if inp is None:  # read_linear_image reports the unreadable file
+        return None, None
+    try:
+        spec = inp.spec()
+        kind = (
+            spec.get_string_attribute(KIND_ATTR, "")
+            or spec.get_string_attribute(LEGACY_ATTRS[KIND_ATTR], "")
+            or None
+        )
+        colorspace = spec.get_string_attribute("oiio:ColorSpace", "").lower()
+        basetype = spec.format.basetype
+        eight_bit = basetype in (oiio.UINT8, oiio.INT8)
+        fmt = inp.format_name().lower()
+    finally:
+        inp.close()
+    linear = "linear" in colorspace or colorspace.startswith("lin_")
+    srgb = "srgb" in colorspace or (fmt in ("png", "jpeg", "bmp", "gif", "webp") and not linear)
+    parts = [w for w, on in (("8-bit", eight_bit), ("sRGB-encoded", srgb)) if on]
+    return kind, (", ".join(parts) if parts else None)
+
+
 def read_linear_image(path: str | Path) -> tuple[np.ndarray, list[str]]:
     """Read any linear image OpenImageIO reads at full resolution (level 0 of mip-maps,
     tiles handled by OIIO), choosing colour channels by name and ignoring alpha."""
@@ -229,7 +275,34 @@ def load_scene(spec: str, size: tuple[int, int] | None = None) -> Scene:
         w, h = size or (640, 512)
         scene = BUILTIN_SCENES[name](w, h)
         return scene
+    if Path(spec).is_file():
+        kind, display = scene_file_kind(spec)
+        if kind in NOT_SCENES:
+            raise InputError(
+                f"{spec}: is a vet {kind} file, but a scene must be an HDR image of linear "
+                f"radiance (EXR, HDR, TIFF, PFM, or a vet HDR image): {NOT_SCENES[kind]}"
+            )
+        if kind not in (None, "hdr"):
+            raise InputError(f"{spec}: is a vet {kind} file, not an HDR image of radiance")
+        if kind == "hdr" and Path(spec).suffix.lower() == ".npz":
+            from .formats.hdr import read_hdr
+
+            img = read_hdr(spec)
+            return _scene_from(img.radiance, list(img.channels), spec, size)
+        if display:
+            log.warning(
+                "%s: an %s image is display-referred, not linear radiance; its values are "
+                "taken as radiance as they are (convert it to a linear EXR or HDR first)",
+                spec,
+                display,
+            )
     radiance, channels = read_linear_image(spec)
+    return _scene_from(radiance, channels, spec, size)
+
+
+def _scene_from(
+    radiance: np.ndarray, channels: list[str], spec: str, size: tuple[int, int] | None
+) -> Scene:
     radiance = sanitise(radiance, spec)
     if size is not None:
         radiance = resample(radiance, size)

@@ -451,12 +451,12 @@ def test_workers_limit_openimageio_to_one_thread():
     worker's compression over every core (measured 1.4 cores for one worker)."""
     import OpenImageIO as oiio
 
-    from stages.batch import worker
+    from stages import cluster
 
     before = oiio.get_int_attribute("threads")
     try:
-        worker._threads_limited = False
-        worker.limit_threads()
+        cluster._threads_limited = False
+        cluster.limit_threads()
         assert oiio.get_int_attribute("threads") == 1
         assert oiio.get_int_attribute("exr_threads") == 1
     finally:

@@ -1,9 +1,8 @@
-"""vet calibrate: Gray-code decoding, homography fit, dark/leakage/gain, folders, CLI."""
+"""vet calibrate: Gray-code decoding, homography fit, dark/leakage/gain, the file, CLI, rig path."""
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -187,103 +186,6 @@ def test_read_calibration_refuses_other_kinds(tmp_path):
         c.read_calibration(tmp_path / "x.npz")
 
 
-# --- recorded frames ----------------------------------------------------------------------
-
-GAIN = RigParams().gain_dn_per_e  # DN per electron of the default 12-bit sensor
-
-
-def _write_folder(root: Path, with_gray: bool = True) -> dict:
-    """Synthesise a recorded calibration (16-bit PNG and TIFF, raw pedestal 64 DN)."""
-    import cv2
-
-    cells, size = (40, 24), (64, 48)
-    w, h = size
-    truth = {
-        "cells": cells,
-        "size": size,
-        "hom": c.example_homography(cells, size),
-        "bias": 64.0,
-        "dark": 20.0,
-        "leak": 0.004,
-        "rate": 2.0e5,
-        "meas": 0.5,
-    }
-    root.mkdir(exist_ok=True)
-    (root / "rig.toml").write_text(f"[params]\nlcos_cells = [{cells[0]}, {cells[1]}]\n")
-    rng = np.random.default_rng(3)  # seeded: small fixed-pattern variation in the bias
-    bias = truth["bias"] + rng.normal(0, 1.0, (h, w))
-    cm = CellMap(truth["hom"], cells, (h, w))
-
-    def save(name: str, img: np.ndarray) -> None:
-        cv2.imwrite(str(root / name), np.clip(np.rint(img), 0, 65535).astype(np.uint16))
-
-    def dark(t: float) -> np.ndarray:
-        return bias + GAIN * truth["dark"] * t
-
-    for t in (0.5, 10.0):
-        for n in range(2):
-            save(f"dark_{t:g}s_{n:02d}.tif", dark(t))
-    t_o, t_c, t_m = 0.01, 2.0, 0.005
-    save("open_0.01s_00.png", dark(t_o) + truth["rate"] * t_o)
-    leak_px = cm.to_pixels(np.append(np.full(cm.n_cells, truth["leak"]), 1.0))
-    save("closed_2s_00.png", dark(t_c) + truth["rate"] * t_c * leak_px)
-    save("meas_flat_0.005s_00.png", dark(t_m) + truth["meas"] * truth["rate"] * t_m)
-    if with_gray:
-        for k, pat in enumerate(c.gray_code_patterns(cells)):
-            per_cell = np.append(np.where(pat.ravel(), 1.0, truth["leak"]), 1.0)
-            save(f"gray_{k:02d}.png", dark(t_o) + truth["rate"] * t_o * cm.to_pixels(per_cell))
-    (root / "notes.txt").write_text("ignored\n")
-    return truth
-
-
-def test_calibrate_from_folder(tmp_path):
-    truth = _write_folder(tmp_path / "rec")
-    cal = c.calibrate_from_folder(tmp_path / "rec")
-    assert cal.sensor_size == truth["size"] and cal.lcos_cells == truth["cells"]
-    mx, _ = c.homography_error_px(cal.homography, truth["hom"], truth["cells"], truth["size"])
-    assert mx <= 0.5
-    assert cal.summary["bias_median_dn"] == pytest.approx(truth["bias"], abs=0.5)
-    assert cal.summary["dark_current_median_e_s"] == pytest.approx(truth["dark"], rel=0.1)
-    assert cal.summary["leakage_median"] == pytest.approx(truth["leak"], rel=0.1)
-    assert cal.summary["gain_ratio_median"] == pytest.approx(truth["meas"], rel=0.05)
-    assert cal.provenance["skipped"] == []
-
-
-def test_calibrate_from_folder_skips_missing_parts(tmp_path, caplog):
-    _write_folder(tmp_path / "rec", with_gray=False)
-    (tmp_path / "rec" / "gray_00.png").write_bytes(
-        (tmp_path / "rec" / "open_0.01s_00.png").read_bytes()
-    )
-    cal = c.calibrate_from_folder(tmp_path / "rec")
-    assert cal.homography is None and cal.cell_x is None
-    assert "leakage_median" in cal.summary
-    assert any("gray_00" in r.getMessage() for r in caplog.records)  # incomplete Gray set named
-    assert any("homography" in s for s in cal.provenance["skipped"])
-
-
-def test_calibrate_from_folder_without_frames(tmp_path):
-    (tmp_path / "empty").mkdir()
-    (tmp_path / "empty" / "readme.txt").write_text("x")
-    (tmp_path / "empty" / "photo.png").write_bytes(b"not even a png")
-    with pytest.raises(InputError, match="no calibration frames"):
-        c.calibrate_from_folder(tmp_path / "empty")
-    with pytest.raises(InputError, match="no such folder"):
-        c.calibrate_from_folder(tmp_path / "missing")
-
-
-def test_calibrate_from_folder_refuses_bad_frames(tmp_path):
-    import cv2
-
-    truth = _write_folder(tmp_path / "rec", with_gray=False)
-    (tmp_path / "rec" / "dark_0.5s_01.tif").write_bytes(b"garbage")
-    with pytest.raises(FormatError, match="not a readable image"):
-        c.calibrate_from_folder(tmp_path / "rec")
-    w, h = truth["size"]
-    cv2.imwrite(str(tmp_path / "rec" / "dark_0.5s_01.tif"), np.zeros((h, w + 1), np.uint16))
-    with pytest.raises(InputError, match="others are"):
-        c.calibrate_from_folder(tmp_path / "rec")
-
-
 def test_parse_homography(tmp_path):
     h = c.parse_homography("2,0,1,0,3,0,0,0,1")
     np.testing.assert_allclose(h, [[2, 0, 1], [0, 3, 0], [0, 0, 1]])
@@ -414,43 +316,41 @@ def test_calibrate_rig_hardware_path_with_fake_devices(caplog):
     assert not rig.lcos.mask.any()  # left all open
 
 
-def test_read_frame_raw_and_images(tmp_path):
-    import cv2
+def test_calibrate_rig_with_software_triggered_genicam_style_cameras():
+    """GenICam cameras state exposure_us (read back, maybe rounded, in describe()) and, with
+    trigger = "software", deliver a frame only after start_exposure()."""
+    from stages.devices.cameras import Camera
+    from stages.errors import DeviceError
 
-    (tmp_path / "dark_1s_00.dng").write_bytes(b"garbage" * 10)
-    with pytest.raises(FormatError, match="raw"):
-        c.read_frame(tmp_path / "dark_1s_00.dng")
-    rgb = np.zeros((4, 6, 3), np.uint16)
-    rgb[..., 0], rgb[..., 1], rgb[..., 2] = 30, 60, 90
-    cv2.imwrite(str(tmp_path / "rgb.png"), rgb)
-    img = c.read_frame(tmp_path / "rgb.png")
-    assert img.shape == (4, 6) and img.dtype == np.float32
-    np.testing.assert_allclose(img, 60.0)  # 16-bit values kept, channels averaged
+    rig, hom = _fake_hardware_rig()
 
+    class SoftwareTriggered(Camera):
+        def __init__(self, inner, exposure_us, read_back_us):
+            super().__init__()
+            self.inner, self.exposure_us, self.read_back_us = inner, exposure_us, read_back_us
+            self.armed = False
 
-def test_cli_from_folder(tmp_path):
-    truth = _write_folder(tmp_path / "rec")
-    out = tmp_path / "cal.exr"
-    r = run_vet("calibrate", "--frames", tmp_path / "rec", "-o", out)
-    assert r.returncode == 0, r.stderr.decode()
-    cal = c.read_calibration(out)
-    mx, _ = c.homography_error_px(cal.homography, truth["hom"], truth["cells"], truth["size"])
+        def _do_open(self):
+            pass
+
+        def describe(self):
+            return {"backend": "genicam", "exposure_us": self.read_back_us}
+
+        def start_exposure(self):
+            self.armed = True
+
+        def _do_grab(self):
+            if not self.armed:
+                raise DeviceError("no frame: the software trigger was not sent")
+            self.armed = False
+            return self.inner.grab()
+
+    # the camera rounds 10 ms to 9.9 ms; the flat levels are per frame, so the exposures
+    # read back (9.9 ms VET, 5 ms measurement) set the gain ratio: (500 / 5) / (2000 / 9.9)
+    rig.vet = SoftwareTriggered(rig.vet, 10_000.0, 9_900.0)
+    rig.measurement = SoftwareTriggered(rig.measurement, 5_000.0, 5_000.0)
+    cal = c.calibrate_rig(rig, settings=c.AcquisitionSettings(frames_per_exposure=2))
+    mx, _ = c.homography_error_px(cal.homography, hom, (40, 24), (64, 48))
     assert mx <= 0.5
-    assert cal.provenance["source"].startswith("folder:")
-    # the command line's --lcos overrides the folder's rig.toml: a wrong grid is refused
-    # as an incomplete Gray set plus the other parts, not silently misdecoded
-    r = run_vet("calibrate", "--frames", tmp_path / "rec", "--lcos", "80x24", "-o", out)
-    assert r.returncode == 0 and b"missing" in r.stderr
-    assert c.read_calibration(out).homography is None
-
-
-def test_undecodable_gray_frames_are_skipped_not_fatal(tmp_path):
-    """Gray frames that show no LCoS modulation (LCoS not in the path): warn, keep the rest."""
-    _write_folder(tmp_path / "rec", with_gray=False)
-    src = (tmp_path / "rec" / "open_0.01s_00.png").read_bytes()
-    for k in range(2 * sum(c.gray_bit_counts((40, 24)))):
-        (tmp_path / "rec" / f"gray_{k:02d}.png").write_bytes(src)
-    cal = c.calibrate_from_folder(tmp_path / "rec")
-    assert cal.homography is None and cal.cell_x is not None and (cal.cell_x < 0).all()
-    assert any("decoded" in s for s in cal.provenance["skipped"])
-    assert "leakage_median" in cal.summary
+    assert cal.summary["gain_ratio_median"] == pytest.approx(0.495, rel=1e-3)
+    assert cal.provenance["exposures_s"]["open"] == [pytest.approx(9.9e-3)]

@@ -171,6 +171,11 @@ def test_calibration_feeds_capture_and_size_mismatch_is_refused(tmp_path):
         "capture", "--rig", "sim", "--size", "128x96", "--calibration", cal, "-o", tmp_path / "d"
     )
     assert res.returncode == 1 and b"made for a 96x80 sensor" in res.stderr
+    assert b"--size sets the emulated rig's" in res.stderr
+    # Without --size the emulated rig is the calibrated one (the README's example)
+    res = run_vet("capture", "--rig", "sim", "--calibration", cal, "-o", tmp_path / "e")
+    assert res.returncode == 0, res.stderr
+    assert read_capture(tmp_path / "e").shape == (80, 96)
 
 
 def RigParamsDefault(w, h):

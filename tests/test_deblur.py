@@ -293,7 +293,34 @@ def test_measuring_bins_are_called_clipped_alike_by_all_their_readers():
     cap.measure[:, 0, 0, :] = (3930.0 * n_sub)[:, None]
     cap.measure[:, 0, 1, 0] = 4020.0 * n_sub
     _, _, valid = measure_rates(cap)
-    _, ok = _rate_from_measure(cap)
+    _, ok, _ = _rate_from_measure(cap)
     wb = observations(cap).wb.reshape(len(n_sub), 24, 32, -1)
     assert valid[:, 0, 0].all() and (wb[:, 0, 0] > 0).all() and ok[0, 0]
     assert not valid[:, 0, 1].any() and (wb[:, 0, 1] == 0).all() and not ok[0, 1]
+
+
+def test_deblur_mask_says_what_deblur_did():
+    """Code 3 (noise-equivalent radiance) only where deblur kept hdr-static's value;
+    codes 1 and 2 (facts about the data) stay; a moving dark capture has replaced code-3
+    pixels, and they are no longer flagged."""
+    from stages.deblur import deblur_mask
+
+    static = np.array([[0, 1, 2, 3], [3, 3, 0, 1]], np.uint8)
+    L0 = np.ones((2, 4, 1), np.float32)
+    L = L0.copy()
+    L[0, :, 0] = 2.0  # the first row replaced
+    np.testing.assert_array_equal(deblur_mask(static, L, L0), [[0, 1, 2, 0], [3, 3, 0, 1]])
+    doubtful = np.array([[4, 4]], np.uint8)  # hdr-static's doubtful recovery
+    L2 = np.ones((1, 2, 1), np.float32)
+    L2[0, 0] = 3.0
+    np.testing.assert_array_equal(deblur_mask(doubtful, L2, np.ones_like(L2)), [[1, 4]])
+
+    scene = builtin_interior(96, 80)
+    scene.radiance[:, :24] *= 1e-6  # a band below the noise floor, smeared by the motion
+    cap = simulate(scene, parse_motion("translate:30,0"), RigParams(sensor_size=(96, 80)))["vet"]
+    st = hdr_static(cap)
+    img, _ = deblur(cap, motion_init="truth", options=JointOptions(outer=1))
+    replaced = np.any(img.radiance != st.radiance, axis=2)
+    assert np.any(replaced & (st.mask == 3))  # the case exists
+    assert not np.any(replaced & (img.mask == 3))
+    np.testing.assert_array_equal(img.mask[~replaced], st.mask[~replaced])

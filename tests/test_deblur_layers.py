@@ -7,7 +7,7 @@ import pytest
 
 from stages.deblur import deblur
 from stages.deblur.joint import moving_support
-from stages.deblur.layers import estimate_layers
+from stages.deblur.layers import LAYERED_MISS_SHARE, estimate_layers
 from stages.deblur.operator import apply, blur_matrix, motion_layers, vet_windows
 from stages.hdr_static import hdr_static
 from stages.metrics import stops_error
@@ -78,7 +78,7 @@ def test_motion_layers_reading():
 
 
 def test_layers_that_move_alike_merge_into_the_larger():
-    from stages.deblur.layers import _merge_alike
+    from stages.deblur.layers.labels import merge_alike as _merge_alike
 
     label = np.zeros((10, 10), np.int32)
     label[:, 6:] = 1  # 40 points at (40, 10)
@@ -236,15 +236,15 @@ def _ring(truth: np.ndarray, r: int) -> np.ndarray:
 def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
     # The working grid (64 px here, 2.5 capture px a cell) puts the object's boundary a
     # few pixels off; the full-resolution evidence in a band about it moves it back.
-    from stages.deblur import layers
-    from stages.deblur.layers import _refine_boundaries
+    from stages.deblur.layers import estimate as layers
+    from stages.deblur.layers.labels import refine_boundaries as _refine_boundaries
 
     cap = _vet(builtin_chart(160, 128), "object:40,32,80,64:40,10", seed=0)
     truth = np.any(cap.truth_motion != 0, axis=2)
     ring = _ring(truth, 4)
     monkeypatch.setattr(layers, "MAX_WORK_PX", 64)
     refined = estimate_layers(cap)
-    monkeypatch.setattr(layers, "_refine_boundaries", lambda lum, noise, lab, v, c: lab)
+    monkeypatch.setattr(layers, "refine_boundaries", lambda lum, noise, lab, v, c: lab)
     coarse = estimate_layers(cap)
     wrong = {
         name: int((ring & (truth != np.any(e.velocity != 0, axis=2))).sum())
@@ -254,7 +254,7 @@ def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
     # Directly: labels eroded, dilated or shifted by 3 px come back towards the truth.
     import cv2
 
-    from stages.deblur.layers import _rate_frames
+    from stages.deblur.layers.bins import rate_frames as _rate_frames
 
     lum, noise, _valid = _rate_frames(cap)
     centres = cap.measure_times.mean(axis=1)
@@ -274,7 +274,7 @@ def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
 
 
 def test_layers_no_pixel_keeps_are_dropped():
-    from stages.deblur.layers import _kept_layers
+    from stages.deblur.layers.labels import kept_layers as _kept_layers
 
     vels = np.array([[0.0, 0.0], [5.0, 0.0], [40.0, 10.0]], np.float32)
     label, kept = _kept_layers(np.array([[0, 2], [2, 0]]), vels)
@@ -286,15 +286,15 @@ def test_a_candidate_layer_no_point_keeps_leaves_a_still_estimate(monkeypatch):
     # The flow votes give a moving candidate, but no point shows evidence for it (here:
     # the track evidence is withheld). The estimate is then the still scene (this once
     # crashed in the second assignment, with no moving layer).
-    from stages.deblur import layers
+    from stages.deblur.layers import estimate, labels
 
     cap = _vet(builtin_chart(128, 96), "object:32,24,64,48:40,10", seed=0)
     monkeypatch.setattr(
-        layers, "_track_score", lambda lv, *a, **k: np.zeros(lv.shape[1:], np.float32)
+        labels, "track_score", lambda lv, *a, **k: np.zeros(lv.shape[1:], np.float32)
     )
     calls = []
-    assign = layers._assign
-    monkeypatch.setattr(layers, "_assign", lambda *a: calls.append(len(a[2])) or assign(*a))
+    assign = estimate.assign_labels
+    monkeypatch.setattr(estimate, "assign_labels", lambda *a: calls.append(len(a[2])) or assign(*a))
     est = estimate_layers(cap)
     assert calls == [2]  # one moving candidate, assigned once, kept by no point
     assert np.all(est.velocity == 0) and est.layer_velocities.tolist() == [[0.0, 0.0]]
@@ -303,7 +303,7 @@ def test_a_candidate_layer_no_point_keeps_leaves_a_still_estimate(monkeypatch):
 def test_visibility_hides_the_background_behind_a_moving_layer():
     # A 2-px object layer moving right at 10 px/s over a still background: in a bin
     # centred at t = 0.5 it sits 5 px right, hiding the background points there.
-    from stages.deblur.layers import _visible
+    from stages.deblur.layers.model_check import visible_points as _visible
 
     label = np.zeros((6, 20), np.int32)
     label[:, 4:6] = 1
@@ -321,8 +321,16 @@ def test_visibility_hides_the_background_behind_a_moving_layer():
         (builtin_interior, "none", True),
         (builtin_interior, "translate:30,0", True),
         (builtin_interior, "object:40,32,80,64:40,10", True),
+        (builtin_interior, "rotate:4", False),
         (builtin_interior, "rotate:6", False),
         (builtin_interior, "rotate:-10", False),
+        # A global translation of sharp-edged flat patches: sampled nearest-neighbour, the
+        # bins of the one true velocity missed each other by up to half a pixel at every
+        # edge, and the dense field seemed to explain a large share of what it missed.
+        (builtin_chart, "translate:20,0", True),
+        (builtin_chart, "translate:-15,8", True),
+        (builtin_chart, "rotate:4", False),
+        (builtin_chart, "rotate:6", False),
         # Still: the smoothed dense field agrees a hair better than no motion, so the
         # share of that hair the layers (here, no motion) miss is 1.0; motion explains
         # too little of the bins (LAYERED_MIN_GAIN) for that to reject anything.
@@ -338,9 +346,32 @@ def test_the_model_check_rejects_only_motions_that_are_not_layered(make, motion,
     if motion == "none":
         assert est.check.zero - est.check.dense < 0.05
     elif fits:
-        assert est.check.missed_share < 0.05
+        assert est.check.missed_share < 0.0  # the layers explain the bins best
     else:
-        assert est.check.missed_share > 0.15
+        assert est.check.missed_share > 2 * LAYERED_MISS_SHARE
+
+
+@pytest.mark.parametrize("shift", [0.0, 0.25, 0.5])
+def test_the_layer_cost_of_noise_does_not_depend_on_the_shift(shift):
+    # Bins of pure noise (a flat scene): every velocity explains them equally. Bilinear
+    # resampling at a fractional shift averages the noise down (to half its standard
+    # deviation half-way between four pixels); the cost normalises by that, so a
+    # fractional velocity gains nothing over a whole-pixel one.
+    from stages.deblur.layers.alignment import interpolation_noise, layer_cost
+
+    rng = np.random.default_rng(0)
+    lv = rng.normal(0.0, 0.1, (8, 64, 64)).astype(np.float32)
+    slv = np.full_like(lv, 0.1)
+    centres = np.arange(1, 9, dtype=np.float64)
+    v = np.array([shift, shift])  # px/s: bin b is shifted by shift * b in x and y
+    noise = interpolation_noise(v, centres, 64, 64)
+    f = np.mod(shift * centres, 1.0)
+    expected = np.sqrt(((1 - f) ** 2 + f**2) ** 2)
+    np.testing.assert_allclose(noise[:, 10, 10], expected, rtol=1e-5)
+    inner = (slice(12, -12), slice(12, -12))
+    still = float(layer_cost(lv, slv, np.zeros(2), centres, trunc=25.0)[inner].mean())
+    moved = float(layer_cost(lv, slv, v, centres, trunc=25.0)[inner].mean())
+    assert moved == pytest.approx(still, rel=0.06)
 
 
 def test_deblur_of_a_rotation_starts_from_dense_flow_and_beats_hdr_static():

@@ -73,7 +73,11 @@ def test_evaluate_runs_a_subset_on_a_dimmer_scene_and_says_so(tmp_path):
         assert list(rows) == ["vet-static", "short"]  # table order, not argument order
         rms[n] = float(rows["short"]["all_rms"])
         text = (out / "results.md").read_text()
-        assert "DESIGN.md defaults except leakage = 0.01" in text
+        assert (
+            "vet's default rig (the values `vet simulate --help` lists) except leakage = 0.01"
+            in text
+        )
+        assert "DESIGN.md" not in text  # not a file of this project
         assert f"threshold in {n} subframe" in text
         scale[n] = float(text.split("Radiance scale ")[1].split()[0])
         assert (out / "motion.png").is_file() and (out / "contact_sheet.png").is_file()
@@ -119,7 +123,10 @@ def test_evaluate_with_a_given_radiance_scale_reports_it(tmp_path):
     res = CliRunner().invoke(cli, [*args, "--radiance-scale", "50", "-o", str(out), "-q"])
     assert res.exit_code == 0, res.output
     text = (out / "results.md").read_text()
-    assert "Rig: DESIGN.md defaults. Radiance scale 50 e-/s per scene unit (as given)." in text
+    assert (
+        "Rig: vet's default rig (the values `vet simulate --help` lists). Radiance scale 50 e-/s per scene unit (as given)."
+        in text
+    )
 
 
 @pytest.mark.parametrize(

@@ -17,6 +17,7 @@ from stages.errors import FormatError, InputError
 from stages.formats import (
     HDRImage,
     Layered,
+    limits,
     read_capture,
     read_hdr,
     read_layered,
@@ -88,9 +89,11 @@ def test_metadata_readable_by_oiiotool(tmp_path, small_capture):
     out = subprocess.run(
         [oiiotool, "--info", "-v", str(tmp_path / "c.exr")], capture_output=True, text=True
     )
-    assert 'vet:kind: "capture"' in out.stdout
-    line = next(ln for ln in out.stdout.splitlines() if "vet:meta" in ln)
-    assert '"frame_s": 0.99975' in line and '"radiance_scale"' in line
+    assert 'vetKind: "capture"' in out.stdout
+    chunks = [ln for ln in out.stdout.splitlines() if ln.strip().startswith("vetMeta")]
+    assert chunks[0].strip().startswith("vetMeta: ")  # then vetMeta0001, ... in order
+    text = "".join(ln.split(": ", 1)[1].strip()[1:-1] for ln in chunks)  # unquote each
+    assert json.loads(text)["rig"]["frame_s"] == 0.99975 and "radiance_scale" in text
 
 
 def test_hdr_round_trip_and_foreign_exr(tmp_path):
@@ -152,7 +155,7 @@ def test_declared_size_over_limit_is_refused_before_allocating(
 ):
     write_capture(tmp_path / "c.npz", small_capture)
     write_capture(tmp_path / "c.exr", small_capture)
-    monkeypatch.setattr(vio, "MAX_INPUT_BYTES", 1000)
+    monkeypatch.setattr(limits, "MAX_INPUT_BYTES", 1000)
     for name in ("c.npz", "c.exr"):
         with pytest.raises(FormatError, match="over the limit"):
             read_layered(tmp_path / name)

@@ -91,3 +91,20 @@ def test_make_j2_builds_everything_and_touch_rebuilds_only_that_capture(project)
     assert r.returncode == 0, r.stdout + r.stderr
     changed = {p.relative_to(out).as_posix() for p in before if p.stat().st_mtime_ns != before[p]}
     assert changed == {"day1/b.hdr.exr", "day1/b.png"}
+
+
+def test_variables_with_trailing_comments_build(project):
+    """``CAPTURES = captures   # comment`` keeps the spaces before the comment in Make;
+    vet.mk strips its variables, so the style users write works."""
+    vet = Path(sys.executable).parent / "vet"
+    (project / "Makefile").write_text(
+        f"all: vet-all\n\nVET = {vet}   # the command\nCAPTURES = captures   # searched\n"
+        f"OUT = out      # mirrors CAPTURES\ninclude {VET_MK}\n"
+    )
+    r = make(project, "vet-hdr")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert sorted(p.name for p in (project / "out").rglob("*.hdr.exr")) == [
+        "a.hdr.exr",
+        "b.hdr.exr",
+        "f.hdr.exr",
+    ]

@@ -91,7 +91,6 @@ def test_field_errors_are_one_line_exit_1(tmp_path):
         "field:" + str(tmp_path / "nan.exr"): "non-finite velocities",
         "field:" + str(tmp_path / "hdr.exr"): "not a motion field (kind 'hdr'",
         "field:" + str(tmp_path / "missing.exr"): "no such file",
-        "field:": "field:PATH needs a motion file",
     }
     for spec, message in cases.items():
         res = run_vet(
@@ -110,6 +109,9 @@ def test_field_errors_are_one_line_exit_1(tmp_path):
         assert len(lines) == 1 and lines[0].startswith("vet simulate: error: "), err
         assert message in lines[0], (spec, lines[0])
         assert not (tmp_path / "out.exr").exists()
+    # A malformed SPEC is a bad option value: a usage error.
+    res = run_vet("simulate", "builtin:chart", "--motion", "field:", "-o", tmp_path / "out.exr")
+    assert res.returncode == 2 and b"field:PATH needs the path of a motion file" in res.stderr
 
 
 def test_deblur_motion_out_drives_simulate(tmp_path):

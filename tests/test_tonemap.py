@@ -77,6 +77,36 @@ def test_mantiuk_is_monotonic_up_to_solver_noise():
 
 
 @pytest.mark.parametrize("operator", OPERATORS)
+def test_every_operator_uses_the_display_range_and_keeps_the_darks(operator):
+    # builtin:interior spans over five decades: a lamp, and a room 4-5 decades darker.
+    # OpenCV's Mantiuk floors its logs at 1e-4 of white and only min-max stretches its
+    # output, which gave a flat dark grey picture with no texture left in the room.
+    from stages.scenes import builtin_interior
+
+    radiance = builtin_interior(160, 128).radiance
+    codes = np.round(tonemap(radiance, operator) * 255)
+    p1, p99 = np.percentile(codes, [1, 99])
+    assert p99 - p1 >= 110
+    lum = luminance(radiance)
+    dark = luminance(codes)[lum < np.median(lum)]
+    lo, hi = np.percentile(dark, [5, 95])
+    assert hi - lo >= 15  # the darker half of the scene keeps its texture
+
+
+def test_mantiuk_maps_its_cut_log_luminance_onto_the_display_range():
+    # As pfstmo_mantiuk06 does: the 0.1-99.9 percentiles of the output log luminance
+    # become 10**-2.3 and 1 (display-linear), then the display gamma.
+    from stages.tonemap.mantiuk06 import MANTIUK_DISPLAY_RANGE, fit_log_luminance
+
+    lum = np.logspace(-3.0, 0.0, 1001, dtype=np.float32).reshape(1, -1)
+    display = np.repeat(lum[:, :, None], 3, axis=2)
+    out = luminance(fit_log_luminance(display, MANTIUK_DISPLAY_RANGE))[0]
+    assert out[500] == pytest.approx(10 ** (-MANTIUK_DISPLAY_RANGE / 2), rel=1e-3)
+    assert out[-1] == pytest.approx(1.0) and out[0] == pytest.approx(10**-MANTIUK_DISPLAY_RANGE)
+    assert (np.diff(out) >= 0).all()
+
+
+@pytest.mark.parametrize("operator", OPERATORS)
 def test_shuffled_patches_keep_their_brightness_order(operator):
     levels = np.logspace(0, 3, 8).astype(np.float32)
     order = np.array([5, 2, 7, 0, 3, 6, 1, 4])  # a fixed shuffle, so neighbours differ

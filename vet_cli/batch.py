@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from ._common import Progress, State, command, log, verbosity_options
+from .params import STOPS
 
 
 def _parse_param(text: str) -> tuple[str, str, Any]:
@@ -85,7 +86,7 @@ Examples:
     help="Use the existing Dask cluster at ADDRESS (tcp://HOST:PORT) instead.",
 )
 @click.option("--operator", default=None, help="Tone-mapping operator of the tonemap step [log].")
-@click.option("--exposure", type=float, default=None, help="Tone-mapping exposure, stops [0].")
+@click.option("--exposure", type=STOPS, default=None, help="Tone-mapping exposure, stops [0].")
 @click.option(
     "--param",
     "params",
@@ -150,21 +151,21 @@ def cli(
             progress(data["done"], data["total"])
 
     try:
-        report = run_batch(
-            root,
-            output,
-            steps=steps,
-            params=overrides,
-            jobs=n_jobs,
-            scheduler=scheduler,
-            force=force,
-            retry_failed=retry_failed,
-            dry_run=dry_run,
-            on_event=on_event,
-        )
+        with progress:
+            report = run_batch(
+                root,
+                output,
+                steps=steps,
+                params=overrides,
+                jobs=n_jobs,
+                scheduler=scheduler,
+                force=force,
+                retry_failed=retry_failed,
+                dry_run=dry_run,
+                on_event=on_event,
+            )
     except StepSpecError as exc:
         raise click.UsageError(str(exc)) from None
-    progress.finish()
     s = report.summary
     c = s["counts"]
     if dry_run:

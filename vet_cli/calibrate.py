@@ -6,6 +6,8 @@ import click
 
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides
+from .outputs import Output, check_outputs, force_option
+from .params import SEED, SIZE
 
 
 @click.command(
@@ -53,8 +55,8 @@ Example:
     "(a rotated, zoomed, keystoned one) [the nominal one].",
 )
 @click.option("--scene", default=None, help="[sim] Scene instead of the flat field.")
-@click.option("--size", default=None, metavar="WxH", help="[sim] Sensor size [1280x1024].")
-@click.option("--seed", type=int, default=0, show_default=True, help="[sim] Noise seed.")
+@click.option("--size", type=SIZE, default=None, help="[sim] Sensor size [1280x1024].")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="[sim] Noise seed.")
 @click.option(
     "--average",
     type=click.IntRange(1, 1000),
@@ -63,6 +65,7 @@ Example:
     help="Frames averaged per dark, open, closed and flat exposure.",
 )
 @rig_options
+@force_option
 @verbosity_options
 @command("calibrate")
 def cli(
@@ -71,32 +74,29 @@ def cli(
     frames_dir: str | None,
     true_homography: str | None,
     scene: str | None,
-    size: str | None,
+    size: tuple[int, int] | None,
     seed: int,
     average: int,
+    force: bool,
     **kwargs,
 ) -> None:
     from stages import calibrate as c
-    from stages.scenes import parse_size
 
     if rig_spec is None and frames_dir is None:
         raise click.UsageError("give --rig sim|RIG.toml or --frames FOLDER")
-    from stages.formats.io import check_output
-
-    check_output(output)
-    progress = Progress("calibrate")
-    cal = c.run_calibration(
-        rig_spec,
-        frames_dir,
-        rig_overrides(kwargs),
-        size=parse_size(size),
-        true_homography=true_homography,
-        seed=seed,
-        scene=scene,
-        settings=c.AcquisitionSettings(frames_per_exposure=average),
-        progress=progress,
-    )
-    progress.finish()
+    check_outputs([Output("-o", output)], force)
+    with Progress("calibrate") as progress:
+        cal = c.run_calibration(
+            rig_spec,
+            frames_dir,
+            rig_overrides(kwargs),
+            size=size,
+            true_homography=true_homography,
+            seed=seed,
+            scene=scene,
+            settings=c.AcquisitionSettings(frames_per_exposure=average),
+            progress=progress,
+        )
     c.write_calibration(output, cal)
     fit, s = cal.homography_fit, cal.summary
     if cal.homography is not None:

@@ -6,6 +6,8 @@ import click
 
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides
+from .outputs import CAPTURE_FOLDER_FILES, Output, check_outputs, force_option
+from .params import MOTION, SEED, SIZE, positive
 
 
 @click.command(
@@ -32,11 +34,11 @@ Example:
 @click.option(
     "--scene", default="builtin:interior", show_default=True, help="[sim] Scene to render."
 )
-@click.option("--motion", default="none", show_default=True, help="[sim] Motion SPEC.")
-@click.option("--size", default=None, metavar="WxH", help="[sim] Resample the scene.")
-@click.option("--seed", type=int, default=0, show_default=True, help="[sim] Noise and fault seed.")
+@click.option("--motion", type=MOTION, default="none", show_default=True, help="[sim] Motion SPEC.")
+@click.option("--size", type=SIZE, default=None, help="[sim] Resample the scene.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="[sim] Noise and fault seed.")
 @click.option(
-    "--link-bps", type=float, default=None, help="[sim] LCoS link rate, bit/s [unthrottled]."
+    "--link-bps", type=positive(), default=None, help="[sim] LCoS link rate, bit/s [unthrottled]."
 )
 @click.option(
     "--link-fault-rate",
@@ -47,7 +49,7 @@ Example:
 )
 @click.option(
     "--disconnect-at",
-    type=int,
+    type=click.IntRange(min=0),
     default=None,
     metavar="SUBFRAME",
     help="[sim] Cut the LCoS link at this device subframe.",
@@ -63,6 +65,7 @@ Example:
     "--format", "fmt", type=click.Choice(["exr", "npz"]), default="exr", show_default=True
 )
 @rig_options
+@force_option
 @verbosity_options
 @command("capture")
 def cli(
@@ -71,7 +74,7 @@ def cli(
     calibration: str | None,
     scene: str,
     motion: str,
-    size: str | None,
+    size: tuple[int, int] | None,
     seed: int,
     link_bps: float | None,
     link_fault_rate: float,
@@ -79,14 +82,17 @@ def cli(
     measure_bins: int,
     raw_stream: bool,
     fmt: str,
+    force: bool,
     **kwargs,
 ) -> None:
     from stages.capture import capture_frame
     from stages.devices.rigs import SimOptions, open_rig
-    from stages.formats.io import check_output
-    from stages.scenes import parse_size
 
-    check_output(output, "folder", parents=False)  # as capture_frame, before the rig opens
+    # As capture_frame checks it, and a capture already there is not replaced by surprise
+    # (a real one cannot be retaken): before the rig opens.
+    check_outputs(
+        [Output("-o", output, "folder", holds=CAPTURE_FOLDER_FILES, parents=False)], force
+    )
     overrides = rig_overrides(kwargs)
     cal = None
     if calibration:
@@ -94,10 +100,13 @@ def cli(
 
         cal = read_calibration(calibration)
         overrides.update(calibration_changes(cal))
+        if rig_spec == "sim" and size is None:
+            # The emulated rig is the calibrated one: its sensor, the scene resampled to it.
+            size = tuple(int(v) for v in cal.sensor_size)
     sim = SimOptions(
         scene=scene,
         motion=motion,
-        size=parse_size(size),
+        size=size,
         seed=seed,
         link_bps=link_bps,
         link_fault_rate=link_fault_rate,
@@ -111,18 +120,20 @@ def cli(
             raise InputError(
                 f"{calibration}: made for a {cal.sensor_size[0]}x{cal.sensor_size[1]} sensor, "
                 f"but the rig's is {rig.params.sensor_size[0]}x{rig.params.sensor_size[1]}"
+                + (" (--size sets the emulated rig's)" if rig_spec == "sim" else "")
             )
         log.debug("capture: rig %s, sensor %dx%d", rig.name, *rig.params.sensor_size)
-        progress = Progress("capture")
-        cap = capture_frame(
-            rig,
-            output,
-            measure_bins=measure_bins,
-            raw_stream=raw_stream,
-            fmt=fmt,
-            progress=progress,
-        )
-        progress.finish()
+        with Progress("capture") as progress:
+            cap = capture_frame(
+                rig,
+                output,
+                measure_bins=measure_bins,
+                raw_stream=raw_stream,
+                fmt=fmt,
+                progress=progress,
+            )
+    if force:
+        _remove_stale(output, fmt, raw_stream)
     stats = cap.meta["capture_stats"]
     log.info(
         "captured %s: %d closures, %d late (max %d subframes), %d retransmits, %d dropped subframes",
@@ -133,3 +144,18 @@ def cli(
         stats["link"].get("retransmits", 0),
         len(stats["dropped_subframes"]),
     )
+
+
+def _remove_stale(folder: str, fmt: str, raw_stream: bool) -> None:
+    """After a --force capture, remove what the replaced capture left that this one did
+    not rewrite (the other format's file; the raw stream when not kept)."""
+    from pathlib import Path
+
+    stale = ["capture.npz" if fmt == "exr" else "capture.exr"]
+    if not raw_stream:
+        stale += ["measure_raw.npy", "measure_raw.json"]
+    for name in stale:
+        p = Path(folder) / name
+        if p.is_file():
+            p.unlink()
+            log.debug("capture: removed %s of the replaced capture", p)

@@ -5,6 +5,19 @@ from __future__ import annotations
 import click
 
 from ._common import Progress, command, log, verbosity_options
+from .outputs import Output, check_outputs, force_option
+
+
+def _tile_value(value: str) -> int | str:
+    if value in ("auto", "none"):
+        return value
+    try:
+        n = int(value)
+    except ValueError:
+        n = 0
+    if n < 64:
+        raise click.BadParameter(f"{value!r}: give auto, none or a tile size >= 64 pixels")
+    return n
 
 
 @click.command(
@@ -68,6 +81,31 @@ Example:
     "--keep-still hdr-static's (the VET data alone). Default: fused when some pixel "
     "moves, hdr-static's when none does. --method vet only.",
 )
+@click.option(
+    "--tile",
+    default="auto",
+    show_default=True,
+    metavar="N|auto|none",
+    callback=lambda ctx, param, value: _tile_value(value),
+    help="Solve in overlapping N x N pixel tiles, the motion estimated once for the frame: "
+    "memory bounded by a tile. auto: tiles of 1024 on frames over 1536 pixels on a side; "
+    "none: one solve. --method vet only.",
+)
+@click.option(
+    "-j",
+    "--jobs",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Tiles in parallel on an embedded Dask cluster of N worker processes.",
+)
+@click.option(
+    "--scheduler",
+    metavar="ADDRESS",
+    default=None,
+    help="Run the tiles on the existing Dask cluster at ADDRESS (tcp://HOST:PORT).",
+)
+@force_option
 @verbosity_options
 @command("deblur")
 def cli(
@@ -78,26 +116,43 @@ def cli(
     motion_out: str | None,
     motion_picture: str | None,
     fuse_still: bool | None,
+    tile: int | str,
+    jobs: int,
+    scheduler: str | None,
+    force: bool,
 ) -> None:
     from stages.deblur import deblur
     from stages.flow import motion_picture as picture
     from stages.flow import write_motion
-    from stages.formats import read_capture, write_hdr
+    from stages.formats import read_capture, resolve_capture_path, write_hdr
     from stages.formats.images import write_display_image
-    from stages.formats.io import check_output
+    from stages.provenance import record_inputs
 
     if fuse_still is not None and method != "vet":
         flag = "--fuse-still" if fuse_still else "--keep-still"
         raise click.UsageError(f"{flag} applies to --method vet only")
-    check_output(output)
-    check_output(motion_out)
-    check_output(motion_picture, "display")
-    cap = read_capture(capture)
-    progress = Progress(f"deblur {method}")
-    img, vel = deblur(
-        cap, method=method, motion_init=motion_init, progress=progress, fuse_still=fuse_still
+    check_outputs(
+        [
+            Output("-o", output),
+            Output("--motion-out", motion_out),
+            Output("--motion-picture", motion_picture, "display"),
+        ],
+        force,
     )
-    progress.finish()
+    source = resolve_capture_path(capture)
+    cap = read_capture(source)
+    with Progress(f"deblur {method}") as progress:
+        img, vel = deblur(
+            cap,
+            method=method,
+            motion_init=motion_init,
+            progress=progress,
+            fuse_still=fuse_still,
+            tile=tile if method == "vet" else None,
+            workers=jobs,
+            scheduler=scheduler,
+        )
+    record_inputs(img.meta, [source])
     log.debug("deblur: %s in %.1f s", img.meta["method"], img.meta["runtime_s"])
     write_hdr(output, img)
     if motion_out:

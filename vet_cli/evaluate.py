@@ -6,8 +6,10 @@ import click
 
 from stages.evaluate import ROWS
 
-from ._common import command, log, verbosity_options
+from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides, scale_choice, scale_options
+from .outputs import REPORT_FOLDER_FILES, Output, check_outputs, force_option
+from .params import MOTION, SEED, SIZE
 
 
 def _methods(ctx: click.Context, param: click.Parameter, value: str) -> tuple[str, ...]:
@@ -42,9 +44,11 @@ Example:
 )
 @click.argument("scene")
 @click.option("-o", "--output", required=True, metavar="DIR", help="Report folder (created).")
-@click.option("--motion", default="translate:30,0", show_default=True, help="Motion SPEC.")
-@click.option("--size", default=None, metavar="WxH", help="Resample the scene to this sensor size.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed for all noise.")
+@click.option(
+    "--motion", type=MOTION, default="translate:30,0", show_default=True, help="Motion SPEC."
+)
+@click.option("--size", type=SIZE, default=None, help="Resample the scene to this sensor size.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed for all noise.")
 @click.option(
     "--methods",
     default=",".join(ROWS),
@@ -54,27 +58,35 @@ Example:
 )
 @scale_options
 @rig_options
+@force_option
 @verbosity_options
 @command("evaluate")
 def cli(
-    scene: str, output: str, motion: str, size: str | None, seed: int, methods: tuple, **kwargs
+    scene: str,
+    output: str,
+    motion: str,
+    size: tuple[int, int] | None,
+    seed: int,
+    methods: tuple,
+    force: bool,
+    **kwargs,
 ) -> None:
     from stages.evaluate import results_markdown, run_evaluation, write_report
-    from stages.formats.io import check_output
-    from stages.scenes import parse_size
 
-    check_output(output, "folder")
+    check_outputs([Output("-o", output, "folder", holds=REPORT_FOLDER_FILES)], force)
     scale, reach = scale_choice(kwargs)
-    ev = run_evaluation(
-        scene,
-        motion,
-        parse_size(size),
-        seed,
-        rows=methods,
-        progress=lambda m: log.info("evaluate: %s", m),
-        rig_changes=rig_overrides(kwargs),
-        scale=scale,
-        reach_subframes=reach,
-    )
+    with Progress("evaluate", delay_s=0.0, counts=False) as progress:
+        ev = run_evaluation(
+            scene,
+            motion,
+            size,
+            seed,
+            rows=methods,
+            progress=progress.note,
+            on_step=progress,
+            rig_changes=rig_overrides(kwargs),
+            scale=scale,
+            reach_subframes=reach,
+        )
     write_report(ev, output)
     log.info("%s", results_markdown(ev))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from ._common import command, log, verbosity_options
+from .outputs import Output, check_outputs, force_option
 
 
 @click.command(
@@ -27,18 +28,21 @@ Example:
 @click.option(
     "-o", "--output", required=True, help="HDR image (.exr or .npz), or - for stdout (EXR)."
 )
+@force_option
 @verbosity_options
 @command("hdr-static")
-def cli(capture: str, output: str) -> None:
+def cli(capture: str, output: str, force: bool) -> None:
     import numpy as np
 
-    from stages.formats import read_capture, write_hdr
-    from stages.formats.io import check_output
+    from stages.formats import read_capture, resolve_capture_path, write_hdr
     from stages.hdr_static import hdr_static
+    from stages.provenance import record_inputs
 
-    check_output(output)
-    cap = read_capture(capture)
+    check_outputs([Output("-o", output)], force)
+    source = resolve_capture_path(capture)
+    cap = read_capture(source)
     img = hdr_static(cap)
+    record_inputs(img.meta, [source])
     counts = np.bincount(img.mask.ravel(), minlength=4)
     log.debug("hdr-static: mask counts valid=%d recovered=%d saturated=%d floor=%d", *counts[:4])
     if counts[2]:

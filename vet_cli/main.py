@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import importlib
+from typing import Any
 
 import click
 
 from stages import __version__
 
-from ._common import verbosity_options
+from ._common import State, verbosity_options
 
 # name -> (module, short help). Modules are imported only when the command runs.
 COMMANDS = {
@@ -58,6 +59,14 @@ class LazyGroup(click.Group):
         module, _help = COMMANDS[name]
         return importlib.import_module(module).cli
 
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        # "vet" whether run as the console script or as python -m vet_cli, so that shell
+        # completion is always _VET_COMPLETE (eval "$(_VET_COMPLETE=bash_source vet)").
+        State.verbosity = 0  # -v/-q count per invocation (several may share a process)
+        kwargs.setdefault("prog_name", "vet")
+        kwargs.setdefault("complete_var", "_VET_COMPLETE")
+        return super().main(*args, **kwargs)
+
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, hlp) for name, (_m, hlp) in COMMANDS.items()]
         with formatter.section("Commands"):
@@ -65,7 +74,7 @@ class LazyGroup(click.Group):
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, prog_name="vet")
+@click.version_option(__version__, "-V", "--version", prog_name="vet")
 @verbosity_options
 def cli() -> None:
     """vet: variable exposure time (VET) HDR imaging.
@@ -79,4 +88,6 @@ def cli() -> None:
       vet simulate builtin:interior -o - | vet hdr-static - -o - | vet tonemap - -o out.png
 
     Exit status: 0 success, 1 runtime failure (one-line message), 2 usage error.
+    Existing outputs are replaced only with --force. Shell completion: in ~/.bashrc,
+    eval "$(_VET_COMPLETE=bash_source vet)" (zsh_source, fish_source for zsh, fish).
     """

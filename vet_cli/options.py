@@ -7,17 +7,30 @@ from typing import Any
 
 import click
 
-# (option, RigParams field, type, help)
+from .params import SIZE, FiniteFloatRange, non_negative, positive
+
+# (option, RigParams field, type with the valid range, help). The ranges are those
+# RigParams.validate enforces, so a bad value is a usage error before any work.
 RIG_OPTIONS = [
-    ("--frame-s", "frame_s", float, "Frame length Tf, seconds [0.99975]."),
-    ("--subframe-s", "subframe_s", float, "Measuring subframe length, seconds [0.00758]."),
-    ("--full-well", "full_well_e", float, "Full well, electrons [10000]."),
-    ("--read-noise", "read_noise_e", float, "Read noise, electrons rms [5]."),
-    ("--adc-bits", "adc_bits", int, "ADC depth, bits [12]."),
-    ("--dark-current", "dark_current_e_s", float, "Dark current, electrons/s [10]."),
-    ("--threshold", "threshold_frac", float, "Closure threshold, fraction of full well [0.8]."),
-    ("--latency", "latency_subframes", int, "Closure latency, subframes [1]."),
-    ("--leakage", "leakage", float, "LCoS leakage (closed-cell transmittance) [0.002]."),
+    ("--frame-s", "frame_s", positive(), "Frame length Tf, seconds [0.99975]."),
+    ("--subframe-s", "subframe_s", positive(), "Measuring subframe length, seconds [0.00758]."),
+    ("--full-well", "full_well_e", positive(), "Full well, electrons [10000]."),
+    ("--read-noise", "read_noise_e", non_negative(), "Read noise, electrons rms [5]."),
+    ("--adc-bits", "adc_bits", click.IntRange(4, 24), "ADC depth, bits [12]."),
+    ("--dark-current", "dark_current_e_s", non_negative(), "Dark current, electrons/s [10]."),
+    (
+        "--threshold",
+        "threshold_frac",
+        FiniteFloatRange(0, 1, min_open=True),
+        "Closure threshold, fraction of full well [0.8].",
+    ),
+    ("--latency", "latency_subframes", click.IntRange(min=0), "Closure latency, subframes [1]."),
+    (
+        "--leakage",
+        "leakage",
+        FiniteFloatRange(0, 1, max_open=True),
+        "LCoS leakage (closed-cell transmittance) [0.002].",
+    ),
 ]
 
 
@@ -25,7 +38,7 @@ def rig_options(f: Callable) -> Callable:
     for opt, _field, typ, hlp in reversed(RIG_OPTIONS):
         f = click.option(opt, type=typ, default=None, help=hlp)(f)
     f = click.option(
-        "--lcos", "lcos", default=None, metavar="WxH", help="LCoS grid in cells [1024x600]."
+        "--lcos", "lcos", type=SIZE, default=None, help="LCoS grid in cells [1024x600]."
     )(f)
     return f
 
@@ -40,9 +53,15 @@ def rig_overrides(kwargs: dict[str, Any]) -> dict[str, Any]:
             out[field] = val
     lcos = kwargs.pop("lcos", None)
     if lcos:
-        from stages.scenes import parse_size
+        out["lcos_cells"] = tuple(lcos)
+    if out:  # values valid alone may still disagree (a subframe longer than the frame)
+        from stages.errors import InputError
+        from stages.rig import RigParams
 
-        out["lcos_cells"] = parse_size(lcos)
+        try:
+            RigParams(**out)
+        except InputError as exc:
+            raise click.UsageError(f"{exc} (rig options)") from None
     return out
 
 
@@ -50,7 +69,7 @@ def scale_options(f: Callable) -> Callable:
     """``--radiance-scale`` (absolute) or ``--reach-subframes`` (relative to the scene)."""
     f = click.option(
         "--reach-subframes",
-        type=click.FloatRange(min=0, min_open=True),
+        type=positive(),
         default=None,
         metavar="N",
         help="Set the radiance scale so that the scene's 99.9th-percentile luminance "
@@ -59,7 +78,7 @@ def scale_options(f: Callable) -> Callable:
     )(f)
     f = click.option(
         "--radiance-scale",
-        type=click.FloatRange(min=0, min_open=True),
+        type=positive(),
         default=None,
         help="Electrons/s per scene unit [p99.9 luminance reaches the threshold in one subframe].",
     )(f)

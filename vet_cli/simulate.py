@@ -6,6 +6,8 @@ import click
 
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides, scale_choice, scale_options
+from .outputs import Output, check_outputs, force_option
+from .params import MOTION, SEED, SIZE
 
 BUILTINS = "interior, chart"
 METHODS = ["vet", "long", "short", "adaptive-attenuation"]
@@ -34,9 +36,11 @@ Example:
 @click.option(
     "-o", "--output", required=True, help="Capture file (.exr or .npz), or - for stdout (EXR)."
 )
-@click.option("--motion", default="none", show_default=True, help="Motion SPEC (see above).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed for all noise.")
-@click.option("--size", default=None, metavar="WxH", help="Resample the scene to this sensor size.")
+@click.option(
+    "--motion", type=MOTION, default="none", show_default=True, help="Motion SPEC (see above)."
+)
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed for all noise.")
+@click.option("--size", type=SIZE, default=None, help="Resample the scene to this sensor size.")
 @click.option(
     "--method",
     type=click.Choice(METHODS),
@@ -53,6 +57,7 @@ Example:
 )
 @scale_options
 @rig_options
+@force_option
 @verbosity_options
 @command("simulate")
 def cli(
@@ -60,37 +65,36 @@ def cli(
     output: str,
     motion: str,
     seed: int,
-    size: str | None,
+    size: tuple[int, int] | None,
     method: str,
     measure_bins: int,
+    force: bool,
     **kwargs,
 ) -> None:
     from stages.formats import write_capture
-    from stages.formats.io import check_output
     from stages.motion import parse_motion
     from stages.rig import RigParams
-    from stages.scenes import load_scene, parse_size
+    from stages.scenes import load_scene
     from stages.simulate import simulate
 
-    check_output(output)
+    check_outputs([Output("-o", output)], force)
     scale, reach = scale_choice(kwargs)
     overrides = rig_overrides(kwargs)
     mot = parse_motion(motion)
-    sc = load_scene(scene, parse_size(size))
+    sc = load_scene(scene, size)
     h, w = sc.radiance.shape[:2]
     rig = RigParams(sensor_size=(w, h), **overrides)
     log.debug("simulate: %s %dx%d %s, %d subframes", scene, w, h, mot.spec, rig.n_subframes)
-    progress = Progress(f"simulate {method}")
-    caps = simulate(
-        sc,
-        mot,
-        rig,
-        seed=seed,
-        methods=[method],
-        measure_bins=measure_bins,
-        progress=progress,
-        scale=scale,
-        reach_subframes=reach,
-    )
-    progress.finish()
+    with Progress(f"simulate {method}") as progress:
+        caps = simulate(
+            sc,
+            mot,
+            rig,
+            seed=seed,
+            methods=[method],
+            measure_bins=measure_bins,
+            progress=progress,
+            scale=scale,
+            reach_subframes=reach,
+        )
     write_capture(output, caps[method])

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import os
+
 import click
 
 from ._common import command, verbosity_options
+from .outputs import Output, check_outputs, force_option
+from .params import STOPS, positive
 
 OPERATORS = ["log", "reinhard", "drago", "mantiuk"]
 
@@ -16,7 +20,8 @@ OPERATORS = ["log", "reinhard", "drago", "mantiuk"]
 The extension of OUT picks the format: .png (8 or 16 bits), .jpg (8), .tif (8 or 16);
 - writes PNG to stdout. --operator log is the VET paper's global logarithmic mapping;
 reinhard, drago and mantiuk are OpenCV's. --exposure-time-map pictures the exposure
-time image T instead (INPUT may then also be a capture), --mask the quality mask.
+time image T instead (INPUT may then also be a capture or a capture folder), --mask
+the quality mask.
 
 \b
 Example:
@@ -30,9 +35,11 @@ Example:
 )
 @click.option("--operator", type=click.Choice(OPERATORS), default="log", show_default=True)
 @click.option(
-    "--exposure", type=float, default=0.0, show_default=True, help="Exposure shift in stops."
+    "--exposure", type=STOPS, default=0.0, show_default=True, help="Exposure shift in stops."
 )
-@click.option("--gamma", type=float, default=None, help="Display gamma [operator's default].")
+@click.option(
+    "--gamma", type=positive(), default=None, help="Display gamma, > 0 [operator's default]."
+)
 @click.option(
     "--bits",
     type=click.Choice(["8", "16"]),
@@ -41,9 +48,10 @@ Example:
     help="Bits per channel (16: PNG or TIFF only).",
 )
 @click.option(
-    "--exposure-time-map", "what", flag_value="T", help="Picture T in false colour with a scale."
+    "--exposure-time-map", "t_map", is_flag=True, help="Picture T in false colour with a scale."
 )
-@click.option("--mask", "what", flag_value="mask", help="Picture the quality mask with a legend.")
+@click.option("--mask", is_flag=True, help="Picture the quality mask with a legend.")
+@force_option
 @verbosity_options
 @command("tonemap")
 def cli(
@@ -53,15 +61,27 @@ def cli(
     exposure: float,
     gamma: float | None,
     bits: str,
-    what: str | None,
+    t_map: bool,
+    mask: bool,
+    force: bool,
 ) -> None:
     from stages.errors import FormatError, InputError
+    from stages.formats import resolve_capture_path
     from stages.formats.images import write_display_image
-    from stages.formats.io import check_output
     from stages.formats.layered import read_layered
     from stages.rig import RigParams
 
-    check_output(output, "display")  # refuse a bad name before any work
+    if t_map and mask:
+        raise click.UsageError("give --exposure-time-map or --mask, not both")
+    what = "T" if t_map else "mask" if mask else None
+    check_outputs([Output("-o", output, "display")], force)  # before any work
+    if input != "-" and os.path.isdir(input):
+        input = resolve_capture_path(input)  # a capture folder: its capture
+        if what != "T":
+            raise InputError(
+                f"{input}: is a capture, not an HDR image; run hdr-static or deblur on "
+                "its folder first (or use --exposure-time-map)"
+            )
     name = "standard input" if input == "-" else input
     data = read_layered(input)
     kind = data.meta.get("kind")

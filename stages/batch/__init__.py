@@ -2,7 +2,8 @@
 
 Discovery (:mod:`.discover`), the step registry (:mod:`.steps`), the manifest that makes
 reruns incremental (:mod:`.manifest`), the per-capture worker function (:mod:`.worker`)
-and the run itself, in-process or on Dask distributed (:mod:`.run`). See docs/batch.md.
+and the run itself (:mod:`.run`), in-process or on Dask distributed (:mod:`.executors`).
+See docs/batch.md.
 """
 
 from .discover import CaptureUnit, discover_captures, output_stems, probe_kind

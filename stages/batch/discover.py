@@ -5,8 +5,8 @@ A *capture unit* is either a capture file (``*.exr`` or ``*.npz`` whose metadata
 ``capture.npz``; see :data:`stages.formats.capture.CAPTURE_FILENAMES`). Files inside a
 capture folder (its raw measuring stream, its log) are never units of their own.
 
-Classifying a file reads only its header: the EXR attribute ``vet:kind`` (parsed here in
-pure Python, without OpenImageIO) or the ``__meta__`` member of an ``.npz``. A file
+Classifying a file reads only its header: the EXR attribute ``vetKind`` (``vet:kind`` in
+older files; parsed here in pure Python, without OpenImageIO) or the ``__meta__`` member of an ``.npz``. A file
 whose header is readable but says another kind (an HDR image, a motion field) or no vet
 kind at all (a foreign EXR) is *ignored*; a file whose header cannot be read is kept as a
 unit, so that the run reports it as a failure with its reason instead of silently
@@ -15,15 +15,17 @@ skipping a damaged capture.
 
 from __future__ import annotations
 
-import json
 import os
 import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from tokenize import TokenError
 
+from ..errors import FormatError
 from ..formats.capture import CAPTURE_FILENAMES
 from ..formats.io import EXR_MAGIC, ZIP_MAGIC
+from ..formats.limits import parse_json
 
 #: File extensions that may hold a capture (compared in lower case).
 CAPTURE_EXTENSIONS = (".exr", ".npz")
@@ -141,12 +143,20 @@ def probe_kind(path: str | Path) -> str | None:
         with open(path, "rb") as f:
             magic = f.read(4)
         if magic == EXR_MAGIC:
-            attrs = read_exr_attributes(path, {"vet:kind"})
-            kind = attrs.get("vet:kind", b"").decode("utf-8", "replace")
+            attrs = read_exr_attributes(path, {"vetKind", "vet:kind"})
+            kind = (attrs.get("vetKind") or attrs.get("vet:kind", b"")).decode("utf-8", "replace")
             return kind or None
         if magic == ZIP_MAGIC:
             return _npz_kind(path)
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError):
+    except (
+        OSError,
+        ValueError,
+        zipfile.BadZipFile,
+        EOFError,
+        SyntaxError,
+        TokenError,
+        NotImplementedError,
+    ):
         return UNREADABLE
     return UNREADABLE
 
@@ -162,8 +172,8 @@ def _npz_kind(path: str | Path) -> str | None:
         with zf.open("__meta__.npy") as fp:
             text = str(np.lib.format.read_array(fp, allow_pickle=False))
     try:
-        meta = json.loads(text)
-    except json.JSONDecodeError:
+        meta = parse_json(text, str(path))
+    except FormatError:
         return UNREADABLE
     kind = meta.get("kind") if isinstance(meta, dict) else None
     return str(kind) if kind else None

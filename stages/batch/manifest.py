@@ -41,13 +41,17 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
-from ..errors import VetError
+from ..errors import FormatError, VetError
 from ..formats.io import atomic_output
+from ..formats.limits import parse_json
+from ..formats.schema import check_manifest
 
 MANIFEST_NAME = ".vet-batch-manifest.json"
 LOCK_NAME = ".vet-batch.lock"
 FORMAT = "vet-batch-manifest"
 FORMAT_VERSION = 1
+#: Largest manifest read (bytes): about a kilobyte per capture.
+MAX_MANIFEST_BYTES = 256 * 1024**2
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -122,22 +126,23 @@ class Manifest:
         """
         path = Path(out_dir) / MANIFEST_NAME
         try:
-            text = path.read_text()
+            if path.stat().st_size > MAX_MANIFEST_BYTES:
+                text = b"\0" * (MAX_MANIFEST_BYTES + 1)  # refused below, without reading it
+            else:
+                text = path.read_bytes()
         except FileNotFoundError:
             return cls(path)
         try:
-            data = json.loads(text)
-            if (
-                not isinstance(data, dict)
-                or data.get("format") != FORMAT
-                or not isinstance(data.get("captures"), dict)
-            ):
-                raise ValueError("not a vet batch manifest")
+            data = parse_json(text, str(path), "manifest", MAX_MANIFEST_BYTES)
+            if not isinstance(data, dict) or data.get("format") != FORMAT:
+                raise FormatError("not a vet batch manifest")
             if data.get("format_version") != FORMAT_VERSION:
-                raise ValueError(f"manifest format version {data.get('format_version')!r}")
-        except ValueError as exc:
+                raise FormatError(f"manifest format version {data.get('format_version')!r}")
+            check_manifest(data, "manifest")
+        except FormatError as exc:
+            reason = str(exc).removeprefix(f"{path}: ")
             m = cls(path)
-            m.load_warning = f"{path}: unreadable manifest ({exc}); every capture will be rerun"
+            m.load_warning = f"{path}: unreadable manifest ({reason}); every capture will be rerun"
             return m
         return cls(path, data)
 

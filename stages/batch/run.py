@@ -1,13 +1,11 @@
 """Running a batch: discover, plan against the manifest, execute, record, summarise.
 
 Execution is in-process for one job at a time without a scheduler, else on Dask
-distributed: an embedded :class:`distributed.LocalCluster` on the loopback interface
-(``n_workers`` processes, one thread each, no dashboard), or an existing cluster through
-``scheduler`` (``tcp://HOST:PORT``). Results stream back as they complete
-(:func:`distributed.as_completed`) and the manifest is rewritten atomically after each
-batch of completions, so a run killed at any moment (even by ``kill -9``) loses at most
-the captures in flight; their outputs are either complete or absent (every writer is
-atomic), and the next run redoes exactly what is missing.
+distributed (:mod:`.executors`). Results stream back as they complete and the manifest
+is rewritten atomically after each batch of completions, so a run killed at any moment
+(even by ``kill -9``) loses at most the captures in flight; their outputs are either
+complete or absent (every writer is atomic), and the next run redoes exactly what is
+missing.
 """
 
 from __future__ import annotations
@@ -16,15 +14,16 @@ import contextlib
 import json
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from .. import __version__
-from ..errors import InputError, VetError
+from ..errors import InputError
 from ..formats.io import atomic_output
 from .discover import CaptureUnit, discover_captures, output_stems
+from .executors import results_dask, results_in_process
 from .manifest import (
     Manifest,
     file_stat,
@@ -36,7 +35,7 @@ from .manifest import (
     step_key,
 )
 from .steps import STEPS, check_available, parse_steps, resolve_params
-from .worker import WORKER_ENV, CaptureJob, CaptureResult, StepCall, process_capture
+from .worker import CaptureJob, CaptureResult, StepCall
 
 log = logging.getLogger("vet.batch")
 
@@ -196,94 +195,6 @@ def _record(manifest: Manifest, unit: CaptureUnit, root: Path, res: CaptureResul
     }
 
 
-def _results_in_process(jobs: list[CaptureJob]) -> Iterator[list[CaptureResult]]:
-    for job in jobs:
-        job.limit_threads = False  # one at a time: let OpenCV use every core
-        yield [process_capture(job)]
-
-
-def _lost(job: CaptureJob, exc: BaseException) -> CaptureResult:
-    step = job.calls[0].step if job.calls else ""
-    reason = " ".join(f"worker lost or task failed ({type(exc).__name__}: {exc})".split())
-    return CaptureResult(rel=job.rel, failure={"step": step, "reason": reason, "key": None})
-
-
-def _quiet_dask_logs() -> None:
-    """Keep Dask's and asyncio's chatter (INFO and DEBUG) out of vet's ``-v`` output."""
-    names = ["distributed", "asyncio", "tornado", "bokeh"]
-    names += [n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]
-    for name in names:
-        logger = logging.getLogger(name)
-        if logger.getEffectiveLevel() < logging.WARNING:
-            logger.setLevel(logging.WARNING)
-
-
-def _results_dask(
-    jobs: list[CaptureJob], n_workers: int, scheduler: str | None, info: dict[str, Any]
-) -> Iterator[list[CaptureResult]]:
-    """Run jobs on Dask; yield the results of each burst of completions."""
-    import distributed
-
-    _quiet_dask_logs()
-    t0 = time.monotonic()
-    cluster = None
-    try:
-        if scheduler:
-            try:
-                client = distributed.Client(
-                    scheduler, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False
-                )
-            except (OSError, TimeoutError) as exc:
-                raise VetError(f"cannot reach the Dask scheduler at {scheduler} ({exc})") from None
-            try:
-                client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
-            except (TimeoutError, OSError):
-                client.close()
-                raise VetError(
-                    f"no Dask worker joined the scheduler at {scheduler} within "
-                    f"{CONNECT_TIMEOUT_S:.0f} s"
-                ) from None
-            info["executor"] = f"dask scheduler {scheduler}"
-        else:
-            cluster = distributed.LocalCluster(
-                n_workers=n_workers,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                dashboard_address=None,
-                worker_dashboard_address=None,
-                env=dict(WORKER_ENV),
-                silence_logs=logging.WARNING,
-            )
-            client = distributed.Client(cluster, set_as_default=False)
-            info["executor"] = f"dask LocalCluster, {n_workers} worker processes on 127.0.0.1"
-        info["workers"] = len(client.scheduler_info().get("workers", {}))
-        info["startup_s"] = round(time.monotonic() - t0, 3)
-        info["process_started"] = time.monotonic()
-        try:
-            by_key = {}
-            futures = []
-            for job in jobs:
-                fut = client.submit(process_capture, job, pure=False)
-                by_key[fut.key] = job
-                futures.append(fut)
-            for burst in distributed.as_completed(futures, loop=client.loop).batches():
-                out: list[CaptureResult] = []
-                for fut in burst:
-                    job = by_key[fut.key]
-                    try:
-                        out.append(fut.result())
-                    except Exception as exc:  # KilledWorker, CancelledError, unpicklable...
-                        out.append(_lost(job, exc))
-                    fut.release()
-                yield out
-        finally:
-            client.close()
-    finally:
-        if cluster is not None:
-            cluster.close()
-
-
 def run_batch(
     root: str | Path,
     out: str | Path,
@@ -430,9 +341,11 @@ def _run_locked(
         if scheduler is None and jobs <= 1:
             info["executor"] = "in-process (-j 1)"
             info["process_started"] = time.monotonic()
-            results = _results_in_process(job_list)
+            results = results_in_process(job_list)
         else:
-            results = _results_dask(job_list, min(jobs, len(job_list)), scheduler, info)
+            results = results_dask(
+                job_list, min(jobs, len(job_list)), scheduler, info, CONNECT_TIMEOUT_S
+            )
         started_emitted = False
         jobs_by_rel = {j.rel: j for j in job_list}
         for burst in results:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -82,8 +83,11 @@ def run_hdr_static(input_path: str, output_path: str, params: dict[str, Any]) ->
     """``hdr-static`` step: capture file -> HDR EXR (no parameters)."""
     from ..formats import read_capture, write_hdr
     from ..hdr_static import hdr_static
+    from ..provenance import record_inputs
 
-    write_hdr(output_path, hdr_static(read_capture(input_path)))
+    img = hdr_static(read_capture(input_path))
+    record_inputs(img.meta, [input_path])
+    write_hdr(output_path, img)
 
 
 def run_deblur(input_path: str, output_path: str, params: dict[str, Any]) -> None:
@@ -105,7 +109,41 @@ def run_deblur(input_path: str, output_path: str, params: dict[str, Any]) -> Non
         result = next((r for r in result if isinstance(r, HDRImage)), None)
     if not isinstance(result, HDRImage):
         raise VetError("stages.deblur.deblur() returned no HDR image")
+    from ..provenance import record_inputs
+
+    record_inputs(result.meta, [input_path])
     write_hdr(output_path, result)
+
+
+#: What ``--param deblur.NAME=VALUE`` may set, and the values each takes (``vet deblur``'s
+#: options).
+DEBLUR_PARAMS = {
+    "method": ("vet", "paper"),
+    "motion_init": ("layers", "farneback", "dis", "truth", "zero", None),
+    "fuse_still": (True, False, "auto", None),
+    "tile": ("auto", "none", None, "an integer >= 64"),
+}
+
+
+def _validate_deblur(params: dict[str, Any]) -> None:
+    """Refuse deblur parameters that ``stages.deblur.deblur`` would reject per capture."""
+    for key, value in params.items():
+        if key not in DEBLUR_PARAMS:
+            raise StepSpecError(
+                f"step 'deblur' has no parameter {key!r} (its parameters: "
+                f"{', '.join(DEBLUR_PARAMS)})"
+            )
+        allowed = DEBLUR_PARAMS[key]
+        if key == "tile" and isinstance(value, int) and not isinstance(value, bool):
+            from ..deblur.tiles import MIN_TILE_PX
+
+            if value >= MIN_TILE_PX:
+                continue
+        if not any(value is a or (isinstance(a, str) and value == a) for a in allowed):
+            shown = ", ".join("null" if a is None else str(a).lower() for a in allowed)
+            raise StepSpecError(f"deblur {key} must be one of {shown}, not {value!r}")
+    if params.get("method") == "paper" and params.get("fuse_still") not in (None, "auto"):
+        raise StepSpecError("deblur fuse_still applies to method vet only")
 
 
 def run_tonemap(input_path: str, output_path: str, params: dict[str, Any]) -> None:
@@ -126,12 +164,15 @@ def _validate_tonemap(params: dict[str, Any]) -> None:
         raise StepSpecError(
             f"tonemap operator {params['operator']!r} unknown; choose from {', '.join(OPERATORS)}"
         )
+    given = params["exposure"]
     try:
-        params["exposure"] = float(params["exposure"])
+        params["exposure"] = float(given)
     except (TypeError, ValueError):
+        params["exposure"] = math.nan
+    if not abs(params["exposure"]) <= 64:  # (NaN too)
         raise StepSpecError(
-            f"tonemap exposure must be a number of stops, not {params['exposure']!r}"
-        ) from None
+            f"tonemap exposure must be a number of stops within +/-64, not {given!r}"
+        )
     if params["bits"] not in (8, 16):
         raise StepSpecError(f"tonemap bits must be 8 or 16, not {params['bits']!r}")
 
@@ -155,7 +196,16 @@ def register_step(step: Step, before: str | None = None) -> None:
 
 register_step(Step("hdr-static", ".hdr.exr", "capture", "hdr", "stages.hdr_static", run_hdr_static))
 register_step(
-    Step("deblur", ".deblur.exr", "capture", "hdr", "stages.deblur", run_deblur, open_params=True)
+    Step(
+        "deblur",
+        ".deblur.exr",
+        "capture",
+        "hdr",
+        "stages.deblur",
+        run_deblur,
+        open_params=True,
+        validate=_validate_deblur,
+    )
 )
 register_step(
     Step(

@@ -12,19 +12,10 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..cluster import limit_threads
 from ..errors import VetError
 from .manifest import file_stat, plan_key, sha256_file, step_key
 from .steps import STEPS
-
-#: Environment for worker processes: one thread each for OpenMP, BLAS and OpenCV, so
-#: that N workers use N cores and no more.
-WORKER_ENV = {
-    "OMP_NUM_THREADS": "1",
-    "OPENBLAS_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-    "OPENCV_FOR_THREADS_NUM": "1",
-}
 
 
 @dataclass
@@ -82,37 +73,6 @@ class CaptureResult:
     @property
     def ok(self) -> bool:
         return self.failure is None
-
-
-_threads_limited = False
-
-
-def limit_threads() -> None:
-    """Limit this process to one OpenCV / OpenMP / BLAS / OpenImageIO thread (idempotent).
-
-    OpenImageIO and OpenEXR compress and decompress on their own thread pools: left
-    alone, one worker spreads over every core (1.4 cores measured on 2), so N workers
-    would not mean N cores.
-    """
-    global _threads_limited
-    if _threads_limited:
-        return
-    for k, v in WORKER_ENV.items():
-        os.environ.setdefault(k, v)
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except ImportError:  # pragma: no cover - cv2 is a dependency
-        pass
-    try:
-        import OpenImageIO as oiio
-
-        oiio.attribute("threads", 1)
-        oiio.attribute("exr_threads", 1)
-    except ImportError:  # pragma: no cover - OpenImageIO is a dependency
-        pass
-    _threads_limited = True
 
 
 def _one_line(text: str) -> str:

@@ -103,6 +103,24 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
     return suppress_small_motion(vel), "dense"
 
 
+def deblur_mask(static_mask: np.ndarray, L: np.ndarray, L_init: np.ndarray) -> np.ndarray:
+    """The mask of a deblurred image (codes of :data:`stages.formats.hdr.MASK_CODES`).
+
+    hdr-static's codes hold where the deblur kept its value. Where the deblur replaced a
+    pixel (``L`` differs from hdr-static's ``L_init``, both (H, W, C)), code 3 (the
+    noise-equivalent radiance) no longer describes the value and becomes 0, and code 4
+    (hdr-static's doubtful recovery of a moving pixel) becomes 1: the deblur's motion
+    explains the data, and the value comes from the measuring images; codes 1 (the VET
+    pixel saturated, so the value comes from the measuring images) and 2 (a lower bound,
+    which the deblur keeps) still hold. Returns a new (H, W) uint8 array.
+    """
+    mask = static_mask.copy()
+    replaced = np.any(L != L_init, axis=2)
+    mask[replaced & (mask == 3)] = 0
+    mask[replaced & (mask == 4)] = 1
+    return mask
+
+
 #: Speeds below this (px/s; under two pixels of travel in a 1 s frame) are flow noise
 #: for the purpose of deblurring and are set to zero, so a still scene stays still.
 MIN_SPEED_PX_S = 2.0
@@ -124,6 +142,11 @@ def deblur(
     options: object | None = None,
     truth_cb: Callable[[np.ndarray], float] | None = None,
     fuse_still: bool | str | None = None,
+    motion: np.ndarray | None = None,
+    motion_model: str = "given",
+    tile: int | str | None = None,
+    workers: int = 1,
+    scheduler: str | None = None,
 ) -> tuple[HDRImage, np.ndarray]:
     """Deblur a VET capture.
 
@@ -153,6 +176,19 @@ def deblur(
         batch``: ``--param deblur.fuse_still=true|false|auto``. The image's metadata
         ``still_pixels`` says which they took (``fused`` or ``hdr-static``; ``none``
         where every pixel moves).
+    motion : ndarray of shape (H, W, 2), optional
+        A start motion in px/s given by the caller (``motion_init`` is then ignored and
+        the metadata's ``motion_model`` says ``motion_model``, by default ``given``; with
+        ``truth`` still pixels are not singled out, as for ``motion_init='truth'``).
+    tile : int, 'auto' or 'none', optional
+        Method ``vet``: solve in overlapping tiles of at most ``tile`` x ``tile`` pixels
+        (:mod:`stages.deblur.tiles`), the motion estimated once for the whole frame;
+        memory is then bounded by a tile. ``'auto'``: tiles on large frames
+        (:func:`stages.deblur.tiles.resolve_tile`). None, ``'none'`` or a tile covering
+        the frame: one solve.
+    workers, scheduler :
+        Tiles run in-process (``workers`` 1, no ``scheduler``), else as Dask tasks on an
+        embedded LocalCluster of ``workers`` processes or on ``scheduler``.
 
     Returns
     -------
@@ -173,22 +209,52 @@ def deblur(
     if fuse_still is not None and method != "vet":
         raise InputError("choosing what still pixels take applies to the vet method only")
     motion_init = motion_init or ("layers" if method == "vet" else "farneback")
+    solve_progress = None
+    if progress is not None:  # the motion estimate counts as the first step
+        progress(0, 1)
+        solve_progress = lambda done, total: progress(done + 1, total + 1)  # noqa: E731
+
     t_start = time.perf_counter()
     static = hdr_static(cap)
     L_init = output_to_rate(cap, static.radiance).astype(np.float32)
-    vel0, motion_model = start_motion(cap, motion_init)
+    if motion is not None:
+        if motion.shape != (*cap.shape, 2):
+            raise InputError(f"the given motion is {motion.shape}, not {(*cap.shape, 2)}")
+        vel0 = motion.astype(np.float32)
+    else:
+        vel0, motion_model = start_motion(cap, motion_init)
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
     # Pixels saturated in the VET image and in the first bin: only a lower bound is known.
     # (Those saturated in the VET image alone are measured by the bins, which the default
     # method fits; the paper's method, which fits I only, keeps their hdr-static value.)
     bound_only = static.mask == 2
-    saturated = np.isin(static.mask, (1, 2)) if method == "paper" else bound_only
+    saturated = np.isin(static.mask, (1, 2, 4)) if method == "paper" else bound_only
     from .problem import observations
 
     # What both methods take: the start image and motion, and the capture's timing.
     start = (L_init, vel0, cap.T, tf, rig.subframe_s, rig.leakage)
-    if method == "vet":
+    if method != "vet":
+        tile = None
+    from .tiles import resolve_tile
+
+    tile = resolve_tile(tile, cap.shape)
+    tiled = tile is not None and max(cap.shape) > tile
+    if tiled:
+        from .joint import JointOptions
+        from .tiles import deblur_in_tiles
+
+        opts = options if options is not None else JointOptions()
+        if fuse_still is not None:
+            opts = replace(opts, fuse_still=fuse_still)
+        radiance, tiling = deblur_in_tiles(
+            deblur, cap, vel0, motion_model, opts, tile, workers, scheduler, solve_progress
+        )
+        name = "vet-deblur"
+        params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}
+        extra = {"still_pixels": tiling.pop("still_pixels"), "tiles": tiling}
+        L, vel = output_to_rate(cap, radiance), vel0
+    elif method == "vet":
         from .joint import JointOptions, deblur_joint
 
         opts = options if options is not None else JointOptions()
@@ -201,9 +267,9 @@ def deblur(
             *start,
             saturated,
             opts,
-            progress=progress,
+            progress=solve_progress,
             truth_cb=truth_cb,
-            still=~np.any(vel0 != 0, axis=2) if motion_init != "truth" else None,
+            still=~np.any(vel0 != 0, axis=2) if motion_model != "truth" else None,
             report=report,
         )
         name = "vet-deblur"
@@ -220,13 +286,14 @@ def deblur(
             static,
             saturated,
             opts,
-            progress=progress,
+            progress=solve_progress,
             truth_cb=truth_cb,
         )
         name = "vet-deblur-paper"
         params, extra = {}, {}  # (the paper's prior smooths every pixel)
     # Pixels hdr-static could only bound keep its value (the deblur has no data there).
     L = np.where(bound_only[..., None], np.maximum(L, L_init), L)
+    mask = deblur_mask(static.mask, L, L_init)
     radiance, units = rate_to_output_units(cap, L.astype(np.float32))
     meta = dict(static.meta)
     meta.update(
@@ -243,6 +310,6 @@ def deblur(
         radiance=radiance.astype(np.float32),
         channels=list(cap.channels),
         meta=meta,
-        mask=static.mask,
+        mask=mask,
         exposure_time=cap.T,
     ), vel

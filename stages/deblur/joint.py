@@ -20,15 +20,15 @@ smoothing is the same at every brightness (a relative, log-like prior suited to 
 
 Motion. The motion comes from :mod:`stages.deblur.layers` (a still background and
 rigidly translating layers, with occlusion, estimated from all the measuring bins over
-long baselines) and is kept fixed by default: measured on the evaluation scenes (five
-HDR scenes at 240 px wide, translations and objects), the layers' velocities are within
-0.2 px/s of the truth, and the dense Gauss-Newton steps on ``u`` (:func:`motion_step`,
-still available with ``update_motion=True``) moved even the true motion away from the
-truth (0 to ~1.8 px/s median error), so they are not taken by default. Coarse to fine:
-the motion is estimated on a grid of at most 400 px (:data:`stages.deblur.layers.MAX_WORK_PX`)
-and refined coarse-to-fine in velocity, and the layer boundaries are then placed at
-full resolution (:func:`stages.deblur.layers._refine_boundaries`). The image is solved
-first on 2 x 2 blocks (:mod:`stages.deblur.pyramid`: the exact summed rows of each
+long baselines) and is kept fixed by default; the dense Gauss-Newton steps on ``u``
+(:func:`motion_step`) are taken only with ``update_motion=True`` (``make bench``,
+bench_layers, prints the velocities found and the share of the frame given the wrong
+layer). Coarse to fine:
+the motion is estimated on a grid of at most
+:data:`stages.deblur.layers.MAX_WORK_PX` pixels and refined coarse-to-fine in velocity,
+and the layer boundaries are then placed at full resolution
+(:func:`stages.deblur.layers.labels.refine_boundaries`). The image is solved first on
+2 x 2 blocks (:mod:`stages.deblur.pyramid`: the exact summed rows of each
 block, an eighth of the work per iteration), and hdr-static times the prolonged
 (log-domain) coarse correction starts the full-resolution solve
 (``JointOptions.levels``), which then needs one outer step fewer (``make bench`` prints
@@ -49,14 +49,9 @@ hdr-static's. ``JointOptions.fuse_still`` decides which a still pixel takes:
 * ``True``: always fused, a still capture too (``vet deblur --fuse-still``).
 * ``False``: never; still pixels keep hdr-static (``vet deblur --keep-still``).
 
-``make bench`` (bench_fusion) measures what it trades. On a still 640x512 interior,
-fusing moves hdr-static by 0.026 stops median (the still-scene target is under 0.01) for
-a dark-pixel RMS of 0.3096 instead of 0.3102 stops (the measuring sum of a dark pixel
-carries the read noise of every subframe). On GoldenGate with its central object, where
-no dark pixel moves, it takes the dark-pixel RMS from hdr-static's 0.01822 to 0.01504
-stops, below the paper method's 0.01820 (whose Laplacian smoothing denoises). On Cannon,
-a bright scene, it cuts the still pixels' RMS error from 0.0059 to 0.0028 stops (closed
-within 50 ms) and from 0.0109 to 0.0038 (closed later), with no bias.
+``make bench`` (bench_fusion) measures what it trades: the change to hdr-static on a
+still scene, and the dark-pixel and still-pixel errors of each choice on scenes with a
+moving object.
 Pixels the VET sensor saturated carry no weight in the VET term (clipped data) and are
 estimated from the measuring bins and the paths crossing them; only those clipped in
 the first bin too, for which hdr-static has no more than a lower bound, are anchored
@@ -68,6 +63,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -83,6 +79,7 @@ from .problem import (
     grad_adjoint,
     laplacian,
     pcg,
+    product,
 )
 
 log = logging.getLogger(__name__)
@@ -131,7 +128,7 @@ def _diag_AtWA(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
 
 def _mv(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
     """``A @ x`` in the matrix's float32 (no per-call upcast copy of ``A``)."""
-    return np.asarray(A @ x.astype(np.float32), dtype=np.float64)
+    return product(A, x).astype(np.float64)
 
 
 def _mvt(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
@@ -171,7 +168,7 @@ def solve_image(
     diag = data_diag.copy()
     rhs = np.asarray(AT @ (w * obs.y).astype(np.float32), dtype=np.float64)
     if Ab is not None:
-        rhs += Ab.mvt(wb * obs.yb)
+        rhs += Ab.mvt_weighted(wb, obs.yb)
     rhs += anchor_w * anchor
     # Precision a pixel at the reference level would have from its own exposure alone
     # (electrons / rate^2): the prior's weight does not shrink where the data are
@@ -186,16 +183,21 @@ def solve_image(
     diag = diag + dsm.reshape(n, c) + anchor_w
 
     def apply_h(x: np.ndarray) -> np.ndarray:
+        # The measuring bins' products run on a second thread beside the VET image's
+        # (scipy's sparse products release the GIL; the two carry similar work).
+        bins = pool.submit(Ab.normal, x, wb) if Ab is not None else None
         out = np.asarray(AT @ (w * _mv(A, x)).astype(np.float32), dtype=np.float64)
-        if Ab is not None:
-            out += Ab.mvt(wb * Ab.mv(x))
         img = x.reshape(h, wd, c)
         gx, gy = grad(img)
-        out += grad_adjoint(sx * gx, sy * gy).reshape(n, c)
+        smooth = grad_adjoint(sx * gx, sy * gy).reshape(n, c)
+        if bins is not None:
+            out += bins.result()
+        out += smooth
         out += anchor_w * x
         return out
 
-    return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
 
 
 def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
@@ -340,7 +342,9 @@ def moving_support(A: sp.csr_matrix, Ab: StackedOperator | None = None) -> np.nd
     for M in [A] + (Ab.parts if Ab is not None else []):
         moving = ~static_rows(M)
         if moving.any():
-            free[M.indices[np.repeat(moving, np.diff(M.indptr))]] = True
+            # The stored values are positive weights: a column is reached by a moving
+            # row exactly where this product is non-zero (no per-non-zero temporary).
+            free |= np.asarray(M.T @ moving.astype(np.float32)) != 0
     return free
 
 
@@ -361,14 +365,18 @@ def fuse_still(
     ``fallback`` is kept where no datum has weight (clipped everywhere).
     """
     rhs = np.asarray(A.T @ (obs.w * obs.y).astype(np.float32), dtype=np.float64)
-    rhs += Ab.mvt(obs.wb * obs.yb)
+    rhs += Ab.mvt_weighted(obs.wb, obs.yb)
     d = data_diag[pixels]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(d > 0, rhs[pixels] / d, fallback)
 
 
-def _coarse_start(obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts):
-    """Start of the fine solve: hdr-static times the coarse level's correction (H W, C)."""
+def _coarse_start(
+    obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts, progress=None
+):
+    """Start of the fine solve: hdr-static times the coarse level's correction (H W, C).
+
+    ``progress(done, total)`` is the coarse solve's."""
     from dataclasses import replace
 
     from .pyramid import block_sum, coarsen, prolong_correction, restrict_mean
@@ -383,7 +391,16 @@ def _coarse_start(obs, L_init, velocity, T, frame_s, subframe_s, leakage, satura
     # full resolution.
     copts = replace(opts, levels=opts.levels - 1, history=[], update_motion=False, fuse_still=False)
     L_c, _ = deblur_joint(
-        cobs, L_c0.astype(np.float32), vel_c, t_c, frame_s, subframe_s, leakage, sat_c, copts
+        cobs,
+        L_c0.astype(np.float32),
+        vel_c,
+        t_c,
+        frame_s,
+        subframe_s,
+        leakage,
+        sat_c,
+        copts,
+        progress=progress,
     )
     # Multiplicative (log-domain) correction: an additive one, interpolated across a
     # bright edge, drives the dark pixels beside it negative.
@@ -451,9 +468,17 @@ def deblur_joint(
     start = None
     if report is not None:
         report["still_pixels"] = "hdr-static"
-    if opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0):
+    total = opts.outer + 1
+    coarse = opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0)
+    # Progress counts the coarse start as `total` steps (whatever its own levels), then
+    # the fine solve's steps.
+    units = 2 * total if coarse else total
+    if progress:
+        progress(0, units)
+    if coarse:
+        sub = (lambda d, t: progress(d * total // max(t, 1), units)) if progress else None
         start = _coarse_start(
-            obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts
+            obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts, sub
         )
     ref = np.stack(
         [cv2.GaussianBlur(L_init[..., k].astype(np.float32), (0, 0), 1.0) for k in range(c)], -1
@@ -468,7 +493,6 @@ def deblur_joint(
     # Noise-equivalent floor (as hdr-static's): one electron over the pixel's exposure.
     expo = np.maximum(T, leakage * frame_s + (1 - leakage) * T).reshape(n, 1)
     floor = np.broadcast_to(1.0 / expo, (n, c))
-    total = opts.outer + 1
     iters_done = 0
     built_for = None
     for it in range(total):
@@ -546,5 +570,7 @@ def deblur_joint(
             time.perf_counter() - ts,
         )
         if progress:
-            progress(it + 1, total)
+            progress(units - total + it + 1, units)
+    if progress:  # (also when no pixel moves and the loop stopped early)
+        progress(units, units)
     return L.reshape(h, wd, c).astype(np.float32), vel

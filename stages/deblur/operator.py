@@ -16,8 +16,9 @@ sample per subframe the model is exactly :func:`stages.simulate.simulate`'s (whi
 the scene at each subframe's mid-time); coarser grouping replaces the motion inside a
 group by its mean position, an error far below the bilinear interpolation's.
 
-``L0`` is sampled bilinearly, with coordinates reflected at the image border
-(OpenCV's ``BORDER_REFLECT``, as the simulator renders translations).
+``L0`` is sampled bilinearly at positions rounded to 1/32 px (OpenCV's interpolation
+grid, on which the simulator's warps sample), with coordinates reflected at the image
+border (OpenCV's ``BORDER_REFLECT``, as the simulator renders translations).
 
 Layered motion with occlusion. A velocity field with only a few distinct values (at
 most :data:`MAX_LAYERS`: a global translation, a still background with moving objects,
@@ -47,7 +48,11 @@ import numpy as np
 import scipy.sparse as sp
 
 #: Pixels per chunk while assembling a matrix (bounds the temporary memory).
-CHUNK_PIXELS = 1 << 14
+CHUNK_PIXELS = 1 << 12
+
+#: Sample positions are rounded to 1/POSITION_STEPS px: OpenCV's bilinear warps
+#: (``INTER_BITS`` = 5), with which the simulator renders the motion, use that grid.
+POSITION_STEPS = 32
 
 #: A velocity field with at most this many distinct values is read as layers.
 MAX_LAYERS = 8
@@ -144,6 +149,7 @@ def blur_matrix(
     step_px: float = 1.0,
     max_samples: int = 64,
     min_dt: float | None = None,
+    layers: Layers | None | str = "read",
 ) -> sp.csr_matrix:
     """Assemble the blur operator for one image as a sparse matrix.
 
@@ -160,6 +166,9 @@ def blur_matrix(
     min_dt : float, optional
         Shortest time a sample may represent (e.g. one subframe: no point in resolving
         motion within one); default none.
+    layers : Layers or None, optional
+        ``motion_layers(velocity)`` when the caller has it (several operators of one
+        motion); by default it is read here.
 
     Returns
     -------
@@ -170,7 +179,8 @@ def blur_matrix(
     h, w = velocity.shape[:2]
     n = h * w
     vel = velocity.reshape(n, 2).astype(np.float64)
-    layers = motion_layers(velocity)
+    if isinstance(layers, str):
+        layers = motion_layers(velocity)
     if layers is not None and len(layers.velocity) > 1:
         # Samples along the fastest layer's path: any layer may cover the pixel.
         speed = np.full(n, float(np.hypot(layers.velocity[:, 0], layers.velocity[:, 1]).max()))
@@ -189,10 +199,12 @@ def blur_matrix(
         ns[(dur <= 0) | (wt == 0)] = 0
         wins.append((a, dur, wt, ns))
 
-    indptr_parts = [np.zeros(1, np.int64)]
-    idx_parts: list[np.ndarray] = []
-    dat_parts: list[np.ndarray] = []
-    nnz = 0
+    indptr = np.zeros(n + 1, np.int64)
+    # The index and value arrays grow geometrically, a few large blocks (not one small
+    # part per chunk kept alive among the chunks' temporaries, which fragments the heap).
+    # (Column indices are below n: int32 for any frame under 2**31 pixels.)
+    per_px = sum(float(ns.mean()) for *_, ns in wins) if n else 0.0
+    out = _Growing(int(2 * per_px * n) + CHUNK_PIXELS)
     for c0 in range(0, n, CHUNK_PIXELS):
         c1 = min(n, c0 + CHUNK_PIXELS)
         rows_l, cols_l, vals_l = [], [], []
@@ -214,6 +226,11 @@ def blur_matrix(
             else:
                 x = px - vel[pix, 0] * t
                 y = py - vel[pix, 1] * t
+            # Positions on OpenCV's interpolation grid (as the simulator's warps sample):
+            # a motion along one axis with a vanishing component along the other then
+            # keeps one row (or column) of bilinear weights, not two.
+            x = np.rint(x * POSITION_STEPS) / POSITION_STEPS
+            y = np.rint(y * POSITION_STEPS) / POSITION_STEPS
             x0 = np.floor(x)
             y0 = np.floor(y)
             fx = x - x0
@@ -238,19 +255,56 @@ def blur_matrix(
             vals = np.concatenate(vals_l)
             blk = sp.csr_matrix((vals.astype(np.float32), (rows, cols)), shape=(c1 - c0, n))
             blk.sum_duplicates()
-            indptr_parts.append(blk.indptr[1:].astype(np.int64) + nnz)
-            idx_parts.append(blk.indices)
-            dat_parts.append(blk.data)
-            nnz += blk.nnz
+            indptr[c0 + 1 : c1 + 1] = blk.indptr[1:] + out.nnz
+            out.append(blk.indices, blk.data)
         else:
-            indptr_parts.append(np.full(c1 - c0, nnz, np.int64))
-    indptr = np.concatenate(indptr_parts)
-    itype = np.int32 if nnz < 2**31 - 1 else np.int64
-    indices = (
-        np.concatenate(idx_parts).astype(itype, copy=False) if idx_parts else np.zeros(0, itype)
+            indptr[c0 + 1 : c1 + 1] = out.nnz
+    indices, data = out.finish()
+    itype = np.int32 if out.nnz < 2**31 - 1 else np.int64
+    return sp.csr_matrix(
+        (data, indices.astype(itype, copy=False), indptr.astype(itype)), shape=(n, n)
     )
-    data = np.concatenate(dat_parts) if dat_parts else np.zeros(0, np.float32)
-    return sp.csr_matrix((data, indices, indptr.astype(itype)), shape=(n, n))
+
+
+def _mapped(n: int, dtype: type) -> np.ndarray:
+    """An uninitialised array of ``n`` items in an anonymous memory map of its own."""
+    import mmap
+
+    itemsize = np.dtype(dtype).itemsize
+    return np.frombuffer(mmap.mmap(-1, n * itemsize), dtype, count=n)
+
+
+class _Growing:
+    """Column index (int32) and float32 value arrays appended to, grown by half when full.
+
+    Each array is its own anonymous memory map: the pages of the capacity not yet
+    filled are never touched, so they take address space but no resident memory; the
+    filled part is returned as a view (no final copy); and the map goes back to the
+    system as a whole when the matrix is freed (an array on the heap, among the
+    assembly's temporaries, would pin them).
+    """
+
+    def __init__(self, capacity: int):
+        self.indices = _mapped(max(capacity, 1), np.int32)
+        self.data = _mapped(max(capacity, 1), np.float32)
+        self.nnz = 0
+
+    def append(self, indices: np.ndarray, data: np.ndarray) -> None:
+        end = self.nnz + len(indices)
+        if end > len(self.indices):
+            cap = max(end, len(self.indices) * 3 // 2)
+            for name in ("indices", "data"):
+                old = getattr(self, name)
+                new = _mapped(cap, old.dtype)
+                new[: self.nnz] = old[: self.nnz]
+                setattr(self, name, new)
+        self.indices[self.nnz : end] = indices
+        self.data[self.nnz : end] = data
+        self.nnz = end
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        """The filled parts of the arrays (views)."""
+        return self.indices[: self.nnz], self.data[: self.nnz]
 
 
 def _layered_positions(

@@ -25,19 +25,17 @@ heavy-tailed shape of natural-image gradient statistics: Field 1987, Fergus et a
 Descent: steepest descent on ``z = log L`` (so the image stays positive without a
 clamp, and steps are relative, as befits an HDR image and the log-gradient prior), with
 an Armijo backtracking line search on the whole energy: a step is taken only if it
-lowers it. (An earlier version took the exact line-search step of the quadratic terms
-on ``L`` and clamped at the noise floor: the global step, set by the bright pixels, drove
-dark pixels next to bright edges to the floor, errors of 5-9 stops.) The motion step is
-a fixed normalised step, accepted only if it lowers the data misfit.
+lowers it. The motion step is a fixed normalised step, accepted only if it lowers the
+data misfit.
 
 Weights: the misfit is in rate^2 units, ``(e-/s)^2`` summed over pixels, so the prior
-weights are not the paper's numbers (its images were 8-bit). ``lam_L`` was chosen on the
+weights are not the paper's numbers (its images were 8-bit). ``lam_L`` is set on the
 builtin interior, not on the evaluation scenes: the Laplacian of an HDR image is largest
-at its bright edges, so a weight that lets it compete with the misfit there (0.2 before
-this setting) sets the global step and the descent leaves the dark pixels at hdr-static;
-0.001 lets the misfit move them. The histogram-intersection term is bounded by
-``lam_h`` (``1 - HI`` lies in [0, 1]), so at any weight that keeps the misfit in charge
-it only nudges the gradient statistics.
+at its bright edges, so a weight large enough to compete with the misfit there sets the
+global step and leaves the dark pixels at hdr-static; a small one lets the misfit move
+them. The histogram-intersection term is bounded by ``lam_h`` (``1 - HI`` lies in
+[0, 1]), so at any weight that keeps the misfit in charge it only nudges the gradient
+statistics.
 """
 
 from __future__ import annotations
@@ -187,9 +185,12 @@ def deblur_paper(
 
     L = np.maximum(L, floor)
     alpha = None
+    total = opts.outer * opts.sd_iters
     for outer in range(opts.outer):
         e_cur = energy(A, L)
-        for _ in range(opts.sd_iters):
+        for it in range(opts.sd_iters):
+            if progress:
+                progress(outer * opts.sd_iters + it, total)
             r = data_res(A, L)
             _e_h, g_h = _hist_term(L, ref_hist)
             grad_L = 2 * s2 * at(A, r) + 2 * opts.lam_L * laplacian(laplacian(L)) + opts.lam_h * g_h
@@ -229,6 +230,6 @@ def deblur_paper(
             A_new, _ = build_operators(obs, trial, step_px=opts.step_px, subframe_s=subframe_s)
             if np.sum(data_res(A_new, L) ** 2) < np.sum(r**2):
                 vel, A = trial, A_new
-        if progress:
-            progress(outer + 1, opts.outer)
+    if progress:
+        progress(total, total)
     return L.astype(np.float32), vel

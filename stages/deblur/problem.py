@@ -17,7 +17,7 @@ import scipy.sparse as sp
 
 from ..formats.capture import Capture
 from ..physics import bin_may_clip
-from .operator import Window, blur_matrix, vet_windows
+from .operator import Window, blur_matrix, motion_layers, vet_windows
 
 
 @dataclass
@@ -57,8 +57,10 @@ def observations(cap: Capture, use_measure: bool = True) -> Observations:
     q = 1.0 / (12.0 * g * g)
     e = cap.I.astype(np.float64) / g
     y = e - rig.dark_current_e_s * tf
-    var = np.maximum(e, 0) + rig.read_noise_e**2 + q
-    wt = 1.0 / var
+    wt = np.maximum(e, 0)
+    del e
+    wt += rig.read_noise_e**2 + q
+    np.divide(1.0, wt, out=wt)  # inverse variance
     wt[cap.I >= np.float32(rig.saturation_dn)] = 0.0  # clipped: as hdr-static tests it
     wins = vet_windows(cap.T, tf, rig.subframe_s, rig.n_subframes, rig.leakage)
     yb = wb = None
@@ -72,25 +74,45 @@ def observations(cap: Capture, use_measure: bool = True) -> Observations:
         nb = cap.measure.shape[0]
         dur = np.diff(cap.measure_times, axis=1)[:, 0]
         n_sub = np.maximum(np.rint(dur / rig.subframe_s), 1)
-        eb = cap.measure.astype(np.float64) / g
-        yb = eb - (rig.dark_current_e_s * dur).reshape(-1, 1, 1, 1)
-        varb = np.maximum(eb, 0) + (n_sub * (rig.read_noise_e**2 + q)).reshape(-1, 1, 1, 1)
-        wb = 1.0 / varb
-        per_sub = cap.measure / n_sub.reshape(-1, 1, 1, 1).astype(np.float32)
-        wb[bin_may_clip(per_sub, rig)] = 0.0
-        yb = yb.reshape(nb * h * w, c)
-        wb = wb.reshape(nb * h * w, c)
+        # One bin at a time into float32 (B H W, C): no float64 copy of all the bins.
+        yb = np.empty((nb * h * w, c), np.float32)
+        wb = np.empty((nb * h * w, c), np.float32)
+        for b in range(nb):
+            rows = slice(b * h * w, (b + 1) * h * w)
+            eb = cap.measure[b].astype(np.float64) / g
+            wbb = np.maximum(eb, 0)
+            wbb += n_sub[b] * (rig.read_noise_e**2 + q)
+            np.divide(1.0, wbb, out=wbb)  # inverse variance
+            wbb[bin_may_clip(cap.measure[b] / np.float32(n_sub[b]), rig)] = 0.0
+            wb[rows] = wbb.reshape(-1, c)
+            del wbb
+            eb -= rig.dark_current_e_s * dur[b]
+            yb[rows] = eb.reshape(-1, c)
         for b in range(nb):
             t0, t1 = (float(v) for v in cap.measure_times[b])
             wins_b.append([Window(t0, t1, float(rig.measure_fraction))])
     return Observations((h, w, c), y.reshape(h * w, c), wt.reshape(h * w, c), wins, yb, wb, wins_b)
 
 
+def product(M: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
+    """``M @ x`` for ``x`` of shape (N, C), float32 (rows, C), one column at a time.
+
+    scipy's single-vector CSR kernel runs faster than its multi-vector one for a few
+    columns, and a float32 ``x`` keeps the product in the matrix's precision with no
+    upcast copy of ``M``.
+    """
+    out = np.empty((M.shape[0], x.shape[1]), np.float32)
+    for k in range(x.shape[1]):
+        out[:, k] = M @ np.ascontiguousarray(x[:, k], np.float32)
+    return out
+
+
 class StackedOperator:
     """Operators of several images sharing the unknown (the measuring bins), kept apart.
 
     Behaves as their vertical stack for the few products the solvers need, without the
-    copy (and the transient doubling of memory) that assembling the stack would cost.
+    copy that assembling the stack would cost; the products go part by part, in the
+    parts' float32, so no (B N, C) float64 array is ever made.
     """
 
     def __init__(self, parts: list[sp.csr_matrix]):
@@ -99,38 +121,76 @@ class StackedOperator:
         self.rows = parts[0].shape[0]
         self.shape = (self.rows * len(parts), parts[0].shape[1])
 
+    def _slice(self, a: np.ndarray, b: int) -> np.ndarray:
+        return a[b * self.rows : (b + 1) * self.rows]
+
     def mv(self, x: np.ndarray) -> np.ndarray:
-        """``stack @ x`` for ``x`` of shape (N, C), float64 result (B N, C)."""
-        x32 = x.astype(np.float32)
-        return np.concatenate([np.asarray(M @ x32, dtype=np.float64) for M in self.parts])
+        """``stack @ x`` for ``x`` of shape (N, C), float32 result (B N, C)."""
+        x32 = np.asarray(x, np.float32)
+        out = np.empty((self.shape[0], x.shape[1]), np.float32)
+        for b, M in enumerate(self.parts):
+            self._slice(out, b)[...] = product(M, x32)
+        return out
 
     def mvt(self, r: np.ndarray) -> np.ndarray:
-        """``stack.T @ r`` for ``r`` of shape (B N, C)."""
-        out = None
+        """``stack.T @ r`` for ``r`` of shape (B N, C), float64 result (N, C)."""
+        out = np.zeros((self.shape[1], r.shape[1]))
         for b, MT in enumerate(self.parts_t):
-            part = np.asarray(
-                MT @ r[b * self.rows : (b + 1) * self.rows].astype(np.float32), dtype=np.float64
-            )
-            out = part if out is None else out + part
+            out += MT @ np.asarray(self._slice(r, b), np.float32)
+        return out
+
+    def mvt_weighted(self, w: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """``stack.T @ (w * r)`` (both (B N, C)) part by part, float64 (N, C)."""
+        out = np.zeros((self.shape[1], r.shape[1]))
+        for b, MT in enumerate(self.parts_t):
+            out += MT @ (self._slice(w, b) * self._slice(r, b)).astype(np.float32, copy=False)
+        return out
+
+    def normal(self, x: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """``stack.T diag(w) stack @ x`` (``w`` of shape (B N, C)), float64 (N, C).
+
+        Part by part: the transient is one part's (N, C) float32 product.
+        """
+        x32 = np.asarray(x, np.float32)
+        out = np.zeros((self.shape[1], x.shape[1]))
+        for b, M in enumerate(self.parts):
+            y = product(M, x32)
+            y *= self._slice(w, b)
+            out += self.parts_t[b] @ y
         return out
 
     def diag_normal(self, w: np.ndarray) -> np.ndarray:
         """Diagonal of ``stack.T diag(w) stack`` (w of shape (B N, C))."""
         out = None
         for b, M in enumerate(self.parts):
-            part = diag_normal(M, w[b * self.rows : (b + 1) * self.rows])
+            part = diag_normal(M, self._slice(w, b))
             out = part if out is None else out + part
         return out
+
+
+#: Rows per block of :func:`diag_normal` (bounds its copy of the squared values).
+DIAG_BLOCK_ROWS = 1 << 16
 
 
 def diag_normal(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
     """Diagonal of ``A.T diag(w) A``, ``w`` of shape (N, C): ``sum_r w_r A_rc^2``.
 
-    Squares the stored values into a matrix that shares ``A``'s index arrays (no
-    index matching, unlike ``A.multiply(A)``).
+    Squares the stored values a block of :data:`DIAG_BLOCK_ROWS` rows at a time into a
+    matrix that shares ``A``'s index arrays (no index matching, unlike
+    ``A.multiply(A)``, and no squared copy of the whole matrix).
     """
-    A2 = sp.csr_matrix((np.square(A.data), A.indices, A.indptr), shape=A.shape, copy=False)
-    return np.asarray(A2.T @ w.astype(np.float32), dtype=np.float64)
+    n_rows, n_cols = A.shape
+    out = np.zeros((n_cols, w.shape[1]))
+    for r0 in range(0, n_rows, DIAG_BLOCK_ROWS):
+        r1 = min(n_rows, r0 + DIAG_BLOCK_ROWS)
+        p0, p1 = int(A.indptr[r0]), int(A.indptr[r1])
+        blk = sp.csr_matrix(
+            (np.square(A.data[p0:p1]), A.indices[p0:p1], A.indptr[r0 : r1 + 1] - p0),
+            shape=(r1 - r0, n_cols),
+            copy=False,
+        )
+        out += blk.T @ np.asarray(w[r0:r1], np.float32)
+    return out
 
 
 def build_operators(
@@ -146,10 +206,16 @@ def build_operators(
     jobs = [(obs.windows, step_px)] + [
         (wins, step_px_bins) for wins in (obs.windows_b if obs.yb is not None else [])
     ]
+    layers = motion_layers(velocity)  # once for all the operators of this motion
     # Two threads: the assembly is numpy work that mostly releases the GIL.
     with ThreadPoolExecutor(max_workers=2) as pool:
         mats = list(
-            pool.map(lambda j: blur_matrix(velocity, j[0], step_px=j[1], min_dt=subframe_s), jobs)
+            pool.map(
+                lambda j: blur_matrix(
+                    velocity, j[0], step_px=j[1], min_dt=subframe_s, layers=layers
+                ),
+                jobs,
+            )
         )
     A = mats[0]
     Ab = StackedOperator(mats[1:]) if len(mats) > 1 else None

@@ -53,6 +53,14 @@ class Camera(abc.ABC):
             self.open()
         return self._do_grab()
 
+    def start_exposure(self) -> None:  # noqa: B027 - optional hook
+        """Start the frame's exposure now, where the camera is triggered by the host (a
+        GenICam software trigger); free-running and wired cameras ignore it."""
+
+    def describe(self) -> dict:
+        """The camera's settings as recorded in a capture's metadata."""
+        return {"backend": type(self).__name__}
+
     def close(self) -> None:
         if self._is_open:
             self._do_close()
@@ -139,6 +147,9 @@ class OpenCVCamera(Camera):
             if self.exposure is not None:
                 self._cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # V4L2: 1 = manual
                 self._cap.set(cv2.CAP_PROP_EXPOSURE, float(self.exposure))
+
+    def describe(self) -> dict:
+        return {"backend": "opencv", "source": str(self.source), "exposure": self.exposure}
 
     def _do_grab(self) -> Frame:
         import cv2

@@ -7,13 +7,15 @@ The capture loop and calibration drive any rig through this one interface.
 Rig file (TOML) for real hardware::
 
     [params]                      # optional RigParams overrides (DESIGN.md §2 defaults)
-    frame_s = 0.99975
-    subframe_s = 0.00758
+    lcos_cells = [1024, 600]
+    sensor_size = [1280, 1024]
 
     [lcos]
     url = "/dev/ttyACM0"          # any pyserial URL: /dev/ttyUSB0, socket://host:port, ...
     baudrate = 115200             # optional (UARTs)
     link_bps = 12e6               # optional: the link's real rate, for ACK timeouts
+    ack_timeout_s = 0.5           # optional: silence before a frame is resent
+    max_retries = 8               # optional: resends before the capture gives up
 
     [measurement_camera]
     source = "/dev/video0"        # V4L2 device, video file, image pattern or folder (replay)
@@ -22,6 +24,23 @@ Rig file (TOML) for real hardware::
     [vet_camera]
     source = "/dev/video1"
     exposure = 9997
+
+A GenICam camera (GigE Vision, USB3 Vision; :mod:`stages.devices.genicam`) instead::
+
+    [measurement_camera]
+    backend = "genicam"
+    device = "Aravis-Fake-GV01"   # Aravis device id, serial number or IP; omit: the first
+    pixel_format = "Mono16"       # Mono8, Mono16 or RGB8
+    right_shift = 4               # a 12-bit sensor left-justified in 16 bits
+    exposure_us = 7000
+    frame_rate_hz = 131.9         # one frame per measuring subframe
+    trigger = "free"              # free, software, or a trigger line such as Line0
+
+    [vet_camera]
+    backend = "genicam"
+    device = "192.168.1.20"
+    exposure_us = 999750
+    trigger = "software"          # the host starts the exposure with the frame
 
 The emulated rig renders ``scene`` moving by ``motion`` through the same physics as
 ``vet simulate``; its LCoS controller runs in its own process on a pseudo-terminal and
@@ -38,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..formats.schema import check_rig_file
 from ..rig import RigParams
 from .cameras import Camera, EmulatedMeasurementCamera, EmulatedVETCamera, OpenCVCamera
 from .lcos import LCoSDevice, SerialLCoS
@@ -171,7 +191,7 @@ def open_sim_rig(opts: SimOptions) -> Rig:
         seed=opts.seed,
     )
     try:
-        lcos = SerialLCoS(emu.port, link_bps=opts.link_bps)
+        lcos = SerialLCoS(emu.port, link_bps=opts.link_bps, cells=params.lcos_cells)
     except Exception:
         emu.stop()
         raise
@@ -233,11 +253,31 @@ def load_rig_file(path: str | Path) -> dict[str, Any]:
     if "url" not in data["lcos"]:
         raise InputError(f'{p}: [lcos] needs url = "/dev/ttyACM0" (any pyserial URL)')
     for cam in ("measurement_camera", "vet_camera"):
-        if "source" not in data[cam]:
+        backend = data[cam].get("backend", "opencv")
+        if backend not in CAMERA_BACKENDS:
+            raise InputError(
+                f"{p}: [{cam}] backend = {backend!r}; known: {', '.join(CAMERA_BACKENDS)}"
+            )
+        if backend == "opencv" and "source" not in data[cam]:
             raise InputError(
                 f'{p}: [{cam}] needs source = "/dev/videoN" (or a video / frame folder)'
             )
+    check_rig_file(data, str(p))
     return data
+
+
+CAMERA_BACKENDS = ("opencv", "genicam")
+
+
+def _camera(section: dict[str, Any], where: str, period_s: float) -> Camera:
+    """The camera a rig file's ``[*_camera]`` table describes."""
+    if section.get("backend", "opencv") == "genicam":
+        from .genicam import camera_from_section
+
+        return camera_from_section(section, where)
+    return OpenCVCamera(
+        section["source"], exposure=section.get("exposure"), frame_period_s=period_s
+    )
 
 
 def open_hardware_rig(path: str | Path) -> Rig:
@@ -245,10 +285,17 @@ def open_hardware_rig(path: str | Path) -> Rig:
     data = load_rig_file(path)
     params = RigParams.from_dict(dict(data.get("params", {})))
     lc = data["lcos"]
-    lcos = SerialLCoS(str(lc["url"]), baudrate=lc.get("baudrate"), link_bps=lc.get("link_bps"))
-    mc, vc = data["measurement_camera"], data["vet_camera"]
-    meas = OpenCVCamera(mc["source"], exposure=mc.get("exposure"), frame_period_s=params.subframe_s)
-    vet = OpenCVCamera(vc["source"], exposure=vc.get("exposure"), frame_period_s=params.frame_s)
+    link = {k: lc[k] for k in ("ack_timeout_s", "max_retries") if k in lc}
+    lcos = SerialLCoS(
+        str(lc["url"]),
+        baudrate=lc.get("baudrate"),
+        link_bps=lc.get("link_bps"),
+        cells=params.lcos_cells,
+        subframe_s=params.subframe_s,
+        **link,
+    )
+    meas = _camera(data["measurement_camera"], f"{path}: [measurement_camera]", params.subframe_s)
+    vet = _camera(data["vet_camera"], f"{path}: [vet_camera]", params.frame_s)
     return Rig(
         params=params,
         lcos=lcos,

@@ -24,6 +24,8 @@ MASK_CODES = {
     1: "VET pixel saturated; radiance recovered from the measuring images",
     2: "saturated in every image; value is a lower bound",
     3: "below the noise floor; value is the noise-equivalent radiance",
+    4: "VET pixel saturated and the first measuring bin contradicts it (the scene moved): "
+    "doubtful; value from that bin",
 }
 
 

@@ -23,40 +23,13 @@ import numpy as np
 
 from ..errors import InputError
 from .io import atomic_output
+from .names import DISPLAY_FORMATS, display_format  # noqa: F401 - DISPLAY_FORMATS re-exported
 
-#: Output formats by extension.
-DISPLAY_FORMATS: dict[str, str] = {
-    ".png": "png",
-    ".jpg": "jpeg",
-    ".jpeg": "jpeg",
-    ".tif": "tiff",
-    ".tiff": "tiff",
-}
 #: Bits per channel each format can hold.
 FORMAT_BITS: dict[str, tuple[int, ...]] = {"png": (8, 16), "jpeg": (8,), "tiff": (8, 16)}
 #: JPEG quality (0-100) used for ``.jpg`` outputs.
 JPEG_QUALITY = 95
 _SUFFIX = {"png": ".png", "jpeg": ".jpg", "tiff": ".tif"}
-
-
-def display_format(path: str | Path) -> str:
-    """Format (``"png"``, ``"jpeg"`` or ``"tiff"``) for an output name; ``-`` gives PNG.
-
-    Raises
-    ------
-    InputError
-        When the extension is not one of :data:`DISPLAY_FORMATS`.
-    """
-    if str(path) == "-":
-        return "png"
-    ext = Path(path).suffix.lower()
-    fmt = DISPLAY_FORMATS.get(ext)
-    if fmt is None:
-        raise InputError(
-            f"{path}: unsupported image extension {ext or '(none)'!r}; "
-            "use .png, .jpg, .jpeg, .tif or .tiff"
-        )
-    return fmt
 
 
 def quantize_display(image: np.ndarray, bits: int = 8) -> np.ndarray:

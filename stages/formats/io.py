@@ -8,6 +8,8 @@ file and never damages an existing one. ``-`` means standard input / output.
 from __future__ import annotations
 
 import contextlib
+import errno
+import io
 import os
 import shutil
 import sys
@@ -15,13 +17,13 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from ..errors import FormatError, InputError
+from ..errors import FormatError, InputError, OutputError, VetError
+from . import limits
+from .limits import check_size  # noqa: F401 - re-exported for readers of raw frames
+from .names import display_format, format_for_output  # noqa: F401 - format_for_output re-exported
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 ZIP_MAGIC = b"PK\x03\x04"
-#: Largest input we accept without being told otherwise (bytes). Guards against files
-#: whose headers promise absurd sizes.
-MAX_INPUT_BYTES = int(os.environ.get("VET_MAX_INPUT_BYTES", str(8 * 1024**3)))
 
 
 def sniff(path: str | Path) -> str:
@@ -44,18 +46,6 @@ def sniff(path: str | Path) -> str:
     raise FormatError(f"{path}: not an OpenEXR or NumPy .npz file (unrecognised magic bytes)")
 
 
-def format_for_output(path: str, default: str = "exr") -> str:
-    """Pick the output format from the name's extension (``-`` gives ``default``)."""
-    if path == "-":
-        return default
-    ext = Path(path).suffix.lower()
-    if ext == ".exr":
-        return "exr"
-    if ext == ".npz":
-        return "npz"
-    raise InputError(f"{path}: unsupported output extension {ext or '(none)'!r}; use .exr or .npz")
-
-
 @contextlib.contextmanager
 def spooled_input(path: str | Path) -> Iterator[Path]:
     """Yield a real, seekable file path for ``path``; ``-`` spools stdin to a temp file.
@@ -67,6 +57,8 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
         p = Path(path)
         if not p.exists():
             raise InputError(f"{p}: no such file")
+        if p.is_file():
+            limits.check_file_size(p.stat().st_size, str(p))
         yield p
         return
     fd, tmp = tempfile.mkstemp(prefix="vet-stdin-")
@@ -79,7 +71,7 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
                 if not chunk:
                     break
                 total += len(chunk)
-                if total > MAX_INPUT_BYTES:
+                if total > limits.MAX_INPUT_BYTES:
                     raise InputError(
                         "standard input exceeds the input size limit (VET_MAX_INPUT_BYTES)"
                     )
@@ -103,6 +95,11 @@ def _output_folder(target: Path) -> Path:
         raise InputError(f"{target}: output folder {folder} does not exist")
     if target.is_dir():
         raise InputError(f"{target}: is a folder, not a file name")
+    if target.is_symlink():
+        raise OutputError(
+            f"{target}: is a symbolic link (to {os.readlink(target)}); vet replaces an output "
+            "whole and would replace the link, not write through it: name the file itself"
+        )
     return folder
 
 
@@ -131,12 +128,33 @@ def check_output(path: str | Path | None, kind: str = "data", parents: bool = Tr
     if kind == "data":
         format_for_output(str(target))
     elif kind == "display":
-        from .images import display_format  # images writes through this module
-
         display_format(target)
     else:
         raise ValueError(f"unknown output kind {kind!r}")
     _output_folder(target)
+
+
+#: Free bytes under which a failed write is reported as a full disk.
+_FULL_DISK_BYTES = 1 << 20
+
+
+def _disk_full(folder: Path) -> bool:
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < _FULL_DISK_BYTES
+
+
+def _silence_stdout() -> None:
+    """Point file descriptor 1 at /dev/null after EPIPE, so that the interpreter's
+    final flush does not print a second error."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
+        pass
 
 
 @contextlib.contextmanager
@@ -145,8 +163,18 @@ def atomic_output(path: str | Path, suffix: str | None = None) -> Iterator[Path]
 
     ``path == "-"`` writes the finished file to standard output instead. On any
     exception the temporary file is removed and ``path`` is untouched.
+
+    Raises
+    ------
+    InputError
+        No such output folder, or ``path`` is a folder.
+    OutputError
+        ``path`` is a symbolic link; the folder is not writable (read-only, permissions);
+        the disk filled up; standard output was closed (broken pipe). One line naming
+        ``path`` (never the temporary file).
     """
     to_stdout = str(path) == "-"
+    shown = "standard output" if to_stdout else str(path)
     if to_stdout:
         folder = Path(tempfile.gettempdir())
         suffix = suffix or ""
@@ -154,7 +182,12 @@ def atomic_output(path: str | Path, suffix: str | None = None) -> Iterator[Path]
         target = Path(path)
         folder = _output_folder(target)
         suffix = suffix if suffix is not None else target.suffix
-    fd, tmp = tempfile.mkstemp(prefix=".vet-tmp-", suffix=suffix, dir=folder)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".vet-tmp-", suffix=suffix, dir=folder)
+    except OSError as exc:
+        raise OutputError(
+            f"{shown}: cannot create a file in {folder} ({exc.strerror or exc})"
+        ) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -170,15 +203,20 @@ def atomic_output(path: str | Path, suffix: str | None = None) -> Iterator[Path]
             os.umask(umask)
             os.chmod(tmp_path, 0o666 & ~umask)
             os.replace(tmp_path, target)
+    except BrokenPipeError:
+        _silence_stdout()
+        raise OutputError(
+            "standard output was closed before the output was written (broken pipe)"
+        ) from None
+    except OSError as exc:
+        if exc.errno == errno.ENOSPC or _disk_full(folder):
+            raise OutputError(f"{shown}: cannot write: no space left on device") from None
+        raise OutputError(f"{shown}: cannot write ({exc.strerror or exc})") from None
+    except VetError:
+        # A writer's own report (OpenImageIO says only "failed to write"): say why.
+        if _disk_full(folder):
+            raise OutputError(f"{shown}: cannot write: no space left on device") from None
+        raise
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp_path)
-
-
-def check_size(nbytes: int, what: str) -> None:
-    """Refuse to allocate more than :data:`MAX_INPUT_BYTES` for one input."""
-    if nbytes < 0 or nbytes > MAX_INPUT_BYTES:
-        raise FormatError(
-            f"{what}: declares {nbytes} bytes of pixel data, over the limit of "
-            f"{MAX_INPUT_BYTES} (set VET_MAX_INPUT_BYTES to raise it)"
-        )

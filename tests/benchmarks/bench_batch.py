@@ -66,7 +66,7 @@ def _throughput(captures: Path, n_workers: int) -> dict[str, float]:
     from distributed import LocalCluster
 
     from stages.batch import run_batch
-    from stages.batch.worker import WORKER_ENV
+    from stages.cluster import WORKER_ENV
 
     best: dict[str, float] = {}
     t0 = time.perf_counter()

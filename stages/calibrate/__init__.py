@@ -1,0 +1,90 @@
+"""Rig calibration: LCoS-to-camera homography, dark current, bias, leakage, gain ratio.
+
+What is measured, and from which frames (all frames in DN as the camera delivers them):
+
+- **Homography** LCoS cell coordinates -> VET sensor pixel coordinates, from Gray-code
+  patterns and their inverses (:mod:`.gray_code`) fitted by RANSAC and least squares
+  (:mod:`.geometry`).
+- **Dark frames** at two or more exposure times give the bias and the dark current;
+  **leakage** is the all-closed over all-open signal rate (:mod:`.sensor_models`).
+- **Gain ratio**: measurement-camera over VET-camera signal rate on the same flat field,
+  the ``measure_fraction`` of the rig (:mod:`.frames`).
+
+The modules, each importing only those above it:
+
+- :mod:`.gray_code`: Gray-code patterns and their per-pixel decoding.
+- :mod:`.geometry`: the cell -> pixel homography (fit, error, example, parsing).
+- :mod:`.sensor_models`: bias and dark current, signal rate, leakage.
+- :mod:`.calfile`: :class:`Calibration`, the calibration file, :func:`apply_calibration`.
+- :mod:`.frames`: :class:`CalibrationFrames` and :func:`calibrate_frames`.
+- :mod:`.acquire`: driving a rig through the calibration sequence.
+- :mod:`.recorded`: reading a folder of recorded frames or camera raws.
+- :mod:`.emulated`: the emulated rig and the errors against its truth.
+- :mod:`.run`: :func:`run_calibration`, what ``vet calibrate`` does.
+- :mod:`.selftest`: the acceptance point, ``python -m stages.calibrate --selftest``.
+
+The result is a :class:`Calibration`, stored as a :class:`~stages.formats.layered.Layered`
+file with ``kind = "calibration"`` (EXR or npz). :func:`apply_calibration` turns it into
+:class:`~stages.rig.RigParams` for ``capture`` and ``hdr-static``.
+"""
+
+from .acquire import AcquisitionSettings, acquire_frames, calibrate_rig
+from .calfile import (
+    CALIBRATION_KIND,
+    Calibration,
+    apply_calibration,
+    calibration_changes,
+    calibration_overrides,
+    read_calibration,
+    write_calibration,
+)
+from .emulated import calibrate_sim, compare_to_truth, open_sim_calibration_rig
+from .frames import CalibrationFrames, ProgressFn, calibrate_frames
+from .geometry import (
+    HomographyFit,
+    example_homography,
+    fit_homography,
+    homography_error_px,
+    parse_homography,
+)
+from .gray_code import decode_gray, gray_bit_counts, gray_code_patterns
+from .recorded import IMAGE_SUFFIXES, RAW_SUFFIXES, calibrate_from_folder, read_frame
+from .run import run_calibration
+from .selftest import selftest
+from .sensor_models import dark_model, leakage_map, signal_rate
+
+__all__ = [
+    "CALIBRATION_KIND",
+    "IMAGE_SUFFIXES",
+    "RAW_SUFFIXES",
+    "AcquisitionSettings",
+    "Calibration",
+    "CalibrationFrames",
+    "HomographyFit",
+    "ProgressFn",
+    "acquire_frames",
+    "apply_calibration",
+    "calibrate_frames",
+    "calibrate_from_folder",
+    "calibrate_rig",
+    "calibrate_sim",
+    "calibration_changes",
+    "calibration_overrides",
+    "compare_to_truth",
+    "dark_model",
+    "decode_gray",
+    "example_homography",
+    "fit_homography",
+    "gray_bit_counts",
+    "gray_code_patterns",
+    "homography_error_px",
+    "leakage_map",
+    "open_sim_calibration_rig",
+    "parse_homography",
+    "read_calibration",
+    "read_frame",
+    "run_calibration",
+    "selftest",
+    "signal_rate",
+    "write_calibration",
+]

@@ -1,0 +1,196 @@
+"""Calibration from recorded frames: a folder of images or camera raws (docs/calibration.md)."""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, InputError
+from ..rig import RigParams
+from .calfile import Calibration
+from .frames import CalibrationFrames, ProgressFn, calibrate_frames, software_version
+from .gray_code import gray_bit_counts
+
+log = logging.getLogger("vet.calibrate")
+
+#: File extensions read by :func:`calibrate_from_folder`: OpenCV images and camera raws.
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".pgm")
+RAW_SUFFIXES = (".dng", ".nef", ".cr2", ".cr3", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw")
+
+
+_NUM = r"(?P<t>\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)"
+_TIMED = re.compile(rf"^(?P<kind>dark|open|closed|meas_flat|meas_dark)_{_NUM}s_(?P<n>\d+)$")
+_GRAY = re.compile(r"^gray_(?P<k>\d+)(?:_(?P<n>\d+))?$")
+
+
+def read_frame(path: str | Path) -> np.ndarray:
+    """One recorded frame as ``ndarray of shape (H, W)`` float32 DN, unprocessed.
+
+    PNG/TIFF/PGM through ``cv2.imread(IMREAD_UNCHANGED)`` (colour averaged to one
+    channel); camera raws through rawpy's ``raw_image_visible`` (the mosaic as read
+    out: no demosaicing, no black-level subtraction, no white balance).
+    """
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix in RAW_SUFFIXES:
+        import rawpy
+
+        try:
+            with rawpy.imread(str(p)) as raw:
+                img = np.array(raw.raw_image_visible, dtype=np.float32)
+        except (rawpy.LibRawError, OSError) as exc:
+            raise FormatError(f"{p}: not a readable raw file ({exc})") from None
+    else:
+        import cv2
+
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise FormatError(f"{p}: not a readable image")
+        img = np.asarray(img, dtype=np.float32)
+        if img.ndim == 3:
+            img = img[:, :, :3].mean(axis=2) if img.shape[2] >= 3 else img[:, :, 0]
+    if img.ndim != 2 or min(img.shape) < 1:
+        raise FormatError(f"{p}: frame has no pixels")
+    return img
+
+
+def calibrate_from_folder(
+    folder: str | Path, params: RigParams | None = None, progress: ProgressFn | None = None
+) -> Calibration:
+    """Calibrate from recorded frames (layout in docs/calibration.md).
+
+    File names (any of .png .tif .tiff .pgm, or camera raws .dng .nef .cr2 ...)::
+
+        dark_<t>s_<NN>        VET camera, lens capped, exposure t seconds (two t or more)
+        open_<t>s_<NN>        VET camera, flat field, LCoS all open
+        closed_<t>s_<NN>      VET camera, flat field, LCoS all closed
+        gray_<KK>[_<NN>]      VET camera, flat field, LCoS showing Gray pattern KK of
+                              gray_code_patterns() (even KK pattern, odd KK its inverse)
+        meas_flat_<t>s_<NN>   measurement camera, same flat field
+        meas_dark_<t>s_<NN>   measurement camera, lens capped, same t (optional)
+
+    e.g. ``dark_0.5s_00.tif``, ``gray_07.png``. An optional ``rig.toml`` in the folder
+    with a ``[params]`` table (as in a rig file) gives the LCoS grid and the sensor's
+    gain; ``params`` overrides it. Missing parts are skipped with a warning.
+
+    Raises
+    ------
+    InputError
+        Not a folder, no usable frame, frames of different sizes, or an incomplete set
+        of Gray-code patterns with nothing else usable.
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        raise InputError(f"{root}: no such folder of calibration frames")
+    if params is None:
+        params = _folder_params(root)
+    timed: dict[str, dict[float, list[Path]]] = {}
+    gray: dict[int, list[Path]] = {}
+    for p in sorted(root.iterdir()):
+        if not p.is_file() or p.suffix.lower() not in IMAGE_SUFFIXES + RAW_SUFFIXES:
+            continue
+        m = _TIMED.match(p.stem)
+        if m:
+            timed.setdefault(m["kind"], {}).setdefault(float(m["t"]), []).append(p)
+            continue
+        m = _GRAY.match(p.stem)
+        if m:
+            gray.setdefault(int(m["k"]), []).append(p)
+            continue
+        log.debug("calibrate: ignoring %s (name does not follow the layout)", p.name)
+    if not timed and not gray:
+        raise InputError(
+            f"{root}: no calibration frames (expected names like dark_0.5s_00.tif, open_0.01s_00.png, "
+            "gray_00.png; see docs/calibration.md)"
+        )
+
+    n_files = sum(len(v) for g in timed.values() for v in g.values()) + sum(
+        len(v) for v in gray.values()
+    )
+    done = 0
+    shape: list[tuple[int, int]] = []
+
+    def mean_of(paths: list[Path]) -> np.ndarray:
+        nonlocal done
+        acc = None
+        for p in paths:
+            img = read_frame(p)
+            if not shape:
+                shape.append(img.shape)
+                from ..formats.io import check_size
+
+                check_size(img.size * 4 * 32, str(p))  # the maps we will hold at this size
+            elif img.shape != shape[0]:
+                raise InputError(
+                    f"{p}: frame is {img.shape[1]}x{img.shape[0]}, the others are "
+                    f"{shape[0][1]}x{shape[0][0]}"
+                )
+            acc = img.astype(np.float64) if acc is None else acc + img
+            done += 1
+            if progress is not None:
+                progress(done, n_files)
+        return (acc / len(paths)).astype(np.float32)
+
+    frames = CalibrationFrames()
+    for kind in ("dark", "open", "closed", "meas_flat", "meas_dark"):
+        for t, paths in sorted(timed.get(kind, {}).items()):
+            if t <= 0:
+                log.warning("calibrate: ignoring %s frames with exposure %g s", kind, t)
+                continue
+            getattr(frames, kind)[t] = mean_of(paths)
+            frames.counts[f"{kind}_{t:g}s"] = len(paths)
+    if gray:
+        nx, ny = gray_bit_counts(params.lcos_cells)
+        needed = 2 * (nx + ny)
+        missing = [k for k in range(needed) if k not in gray]
+        if missing:
+            log.warning(
+                "calibrate: Gray-code set for %dx%d cells needs gray_00 .. gray_%02d; missing %s",
+                params.lcos_cells[0],
+                params.lcos_cells[1],
+                needed - 1,
+                ", ".join(f"{k:02d}" for k in missing[:8]) + (" ..." if len(missing) > 8 else ""),
+            )
+        else:
+            frames.gray_diffs = [
+                mean_of(gray[k]) - mean_of(gray[k + 1]) for k in range(0, needed, 2)
+            ]
+            frames.counts["gray"] = min(len(v) for v in gray.values())
+    if frames.shape() is None:
+        raise InputError(f"{root}: no usable calibration frames (see the warnings above)")
+    if params.sensor_size != (shape[0][1], shape[0][0]):
+        log.info(
+            "calibrate: frames are %dx%d; using that as the sensor size", shape[0][1], shape[0][0]
+        )
+        params = params.replace(sensor_size=(shape[0][1], shape[0][0]), homography=[])
+    prov = {
+        "source": f"folder:{root}",
+        "frames_averaged": frames.counts,
+        "software": software_version(),
+    }
+    return calibrate_frames(frames, params, prov)
+
+
+def _folder_params(root: Path) -> RigParams:
+    """RigParams from ``root/rig.toml``'s ``[params]`` (defaults without it); InputError if bad."""
+    toml = root / "rig.toml"
+    if not toml.is_file():
+        return RigParams()
+    import sys
+
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover
+        import tomli as tomllib
+
+    try:
+        with open(toml, "rb") as f:
+            data = tomllib.load(f)
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{toml}: not valid TOML ({exc})") from None
+    from ..formats.schema import check_rig_params
+
+    return RigParams.from_dict(check_rig_params(data, str(toml)))

@@ -1,0 +1,80 @@
+"""What ``vet calibrate`` does: choose recorded frames, the emulated rig or a rig file."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+from ..rig import RigParams
+from .acquire import AcquisitionSettings, calibrate_rig
+from .calfile import Calibration
+from .emulated import calibrate_sim
+from .frames import ProgressFn
+from .geometry import parse_homography
+from .recorded import calibrate_from_folder
+
+log = logging.getLogger("vet.calibrate")
+
+
+def run_calibration(
+    rig_spec: str | None,
+    frames: str | Path | None = None,
+    overrides: dict[str, Any] | None = None,
+    *,
+    size: tuple[int, int] | None = None,
+    true_homography: str | None = None,
+    seed: int = 0,
+    scene: str | None = None,
+    settings: AcquisitionSettings | None = None,
+    progress: ProgressFn | None = None,
+) -> Calibration:
+    """What ``vet calibrate`` does: from recorded ``frames``, the emulated rig, or a rig file.
+
+    Parameters
+    ----------
+    rig_spec : str or None
+        ``"sim"``, a rig TOML file, or None (only with ``frames``).
+    frames : path, optional
+        Folder of recorded frames (:func:`calibrate_from_folder`); a rig file's
+        ``[params]`` and ``overrides`` then describe the rig.
+    overrides : dict, optional
+        RigParams overrides (on ``sim``: the emulated truth).
+    size, true_homography, seed, scene :
+        Emulated rig only: sensor (width, height); the true homography as text for
+        :func:`parse_homography`; noise seed; a scene instead of the flat field.
+    settings : AcquisitionSettings, optional
+    progress : callable(done, total), optional
+
+    Returns
+    -------
+    Calibration
+    """
+    overrides = dict(overrides or {})
+    if frames is not None:
+        params = None
+        if rig_spec not in (None, "sim") or overrides:
+            base: dict[str, Any] = {}
+            if rig_spec not in (None, "sim"):
+                from ..devices.rigs import load_rig_file
+
+                base = dict(load_rig_file(rig_spec).get("params", {}))
+            params = RigParams.from_dict({**base, **overrides})
+        return calibrate_from_folder(frames, params, progress=progress)
+    if rig_spec is None:
+        raise InputError("nothing to calibrate: give a rig or a folder of frames")
+    if rig_spec == "sim":
+        wh = size or RigParams().sensor_size
+        cells = overrides.get("lcos_cells", RigParams().lcos_cells)
+        true_h = None if true_homography is None else parse_homography(true_homography, cells, wh)
+        return calibrate_sim(wh, overrides, true_h, seed, scene, progress, settings)
+    from ..devices.rigs import open_rig
+
+    if overrides or true_homography or size or scene:
+        log.warning(
+            "calibrate: emulated-rig and rig options are ignored with a rig file "
+            "(rig parameters belong in its [params])"
+        )
+    with open_rig(rig_spec) as rig:
+        return calibrate_rig(rig, progress, settings)

@@ -1,0 +1,129 @@
+"""The Dask engine shared by ``vet batch`` (captures) and tiled ``vet deblur`` (tiles).
+
+:func:`dask_client` yields a :class:`distributed.Client` on an embedded
+:class:`distributed.LocalCluster` on the loopback interface (``workers`` processes, one
+thread each, no dashboard) or on an existing cluster's ``scheduler`` (``tcp://HOST:PORT``).
+Worker processes are limited to one OpenMP/BLAS/OpenCV/OpenImageIO thread each
+(:data:`WORKER_ENV`, :func:`limit_threads`), so N workers use N cores and no more.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from collections.abc import Iterator
+from typing import Any
+
+from .errors import VetError
+
+#: Environment for worker processes: one thread each for OpenMP, BLAS and OpenCV.
+WORKER_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+    "OPENCV_FOR_THREADS_NUM": "1",
+}
+#: Seconds to wait for an existing cluster's scheduler, then for its first worker.
+CONNECT_TIMEOUT_S = 30.0
+
+_threads_limited = False
+
+
+def limit_threads() -> None:
+    """Limit this process to one OpenCV / OpenMP / BLAS / OpenImageIO thread (idempotent).
+
+    OpenImageIO and OpenEXR compress and decompress on their own thread pools: left
+    alone, one worker spreads over every core, so N workers would not mean N cores.
+    """
+    global _threads_limited
+    if _threads_limited:
+        return
+    for k, v in WORKER_ENV.items():
+        os.environ.setdefault(k, v)
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:  # pragma: no cover - cv2 is a dependency
+        pass
+    try:
+        import OpenImageIO as oiio
+
+        oiio.attribute("threads", 1)
+        oiio.attribute("exr_threads", 1)
+    except ImportError:  # pragma: no cover - OpenImageIO is a dependency
+        pass
+    _threads_limited = True
+
+
+def quiet_dask_logs() -> None:
+    """Keep Dask's and asyncio's chatter (INFO and DEBUG) out of vet's ``-v`` output."""
+    names = ["distributed", "asyncio", "tornado", "bokeh"]
+    names += [n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]
+    for name in names:
+        logger = logging.getLogger(name)
+        if logger.getEffectiveLevel() < logging.WARNING:
+            logger.setLevel(logging.WARNING)
+
+
+@contextlib.contextmanager
+def dask_client(
+    workers: int,
+    scheduler: str | None = None,
+    info: dict[str, Any] | None = None,
+    timeout_s: float | None = None,
+) -> Iterator[Any]:
+    """A Dask client on ``scheduler``, else on an embedded LocalCluster of ``workers``.
+
+    ``info`` is filled with ``executor`` (words), ``workers`` (count) and ``startup_s``.
+    Raises :class:`~stages.errors.VetError` when the scheduler cannot be reached or no
+    worker joins it within ``timeout_s`` (default :data:`CONNECT_TIMEOUT_S`).
+    """
+    import distributed
+
+    info = info if info is not None else {}
+    timeout_s = CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
+    quiet_dask_logs()
+    t0 = time.monotonic()
+    cluster = None
+    try:
+        if scheduler:
+            try:
+                client = distributed.Client(
+                    scheduler, timeout=f"{timeout_s}s", set_as_default=False
+                )
+            except (OSError, TimeoutError) as exc:
+                raise VetError(f"cannot reach the Dask scheduler at {scheduler} ({exc})") from None
+            try:
+                client.wait_for_workers(1, timeout=timeout_s)
+            except (TimeoutError, OSError):
+                client.close()
+                raise VetError(
+                    f"no Dask worker joined the scheduler at {scheduler} within {timeout_s:.0f} s"
+                ) from None
+            info["executor"] = f"dask scheduler {scheduler}"
+        else:
+            cluster = distributed.LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,
+                worker_dashboard_address=None,
+                env=dict(WORKER_ENV),
+                silence_logs=logging.WARNING,
+            )
+            client = distributed.Client(cluster, set_as_default=False)
+            info["executor"] = f"dask LocalCluster, {workers} worker processes on 127.0.0.1"
+        info["workers"] = len(client.scheduler_info().get("workers", {}))
+        info["startup_s"] = round(time.monotonic() - t0, 3)
+        try:
+            yield client
+        finally:
+            client.close()
+    finally:
+        if cluster is not None:
+            cluster.close()

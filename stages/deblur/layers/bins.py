@@ -1,0 +1,65 @@
+"""The measuring bins of a capture as log luminance rates at a working scale."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...formats.capture import Capture
+
+
+def rate_frames(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Luminance rate of each measuring bin (B, H, W), its noise, and validity."""
+    from ...flow import measure_rates
+
+    rate, sigma, valid = measure_rates(cap)
+    lum = rate.mean(axis=3)
+    noise = sigma.mean(axis=3) / np.float32(np.sqrt(rate.shape[3]))
+    return lum, noise, valid
+
+
+def log_frames(lum: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Log rates and their noise in log units (first order)."""
+    floor = np.median(noise, axis=0)
+    pos = np.maximum(lum, 0) + floor
+    lv = np.log(pos).astype(np.float32)
+    # Floored so that very bright pixels do not get infinite weight (flow and
+    # interpolation errors dominate there).
+    slv = np.maximum(noise / pos, 0.02).astype(np.float32)
+    return lv, slv
+
+
+def work_frames(lum: np.ndarray, noise: np.ndarray, valid: np.ndarray, max_px: int):
+    """Log-rate bins, their noise in log units and validity, at a working scale."""
+    import cv2
+
+    nb, h, w = lum.shape
+    scale = min(1.0, max_px / max(h, w))
+    if scale < 1.0:
+        size = (max(8, int(round(w * scale))), max(8, int(round(h * scale))))
+        lum = np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in lum])
+        noise = np.stack(
+            [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in noise]
+        ) * np.float32(scale)
+        valid = np.stack(
+            [
+                cv2.resize(v.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.999
+                for v in valid
+            ]
+        )
+        scale_xy = (size[0] / w, size[1] / h)
+    else:
+        scale_xy = (1.0, 1.0)
+    lv, slv = log_frames(lum, noise)
+    return lv, slv, valid, scale_xy
+
+
+def equalise_all(lv: np.ndarray) -> list[np.ndarray]:
+    import cv2
+
+    from ...flow import _equalise
+
+    sample = lv[:, ::2, ::2].ravel()
+    levels = np.unique(np.quantile(sample, np.linspace(0, 1, 257)))
+    if len(levels) < 2:
+        levels = np.array([float(sample.min()), float(sample.min()) + 1.0])
+    return [_equalise(cv2.GaussianBlur(f, (0, 0), 1.0), levels) for f in lv]

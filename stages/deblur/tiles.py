@@ -1,0 +1,260 @@
+"""Deblur in overlapping tiles: memory bounded by a tile, one frame spread over workers.
+
+The motion is estimated once for the whole frame (:func:`stages.deblur.start_motion`), so
+every tile sees the same motion. The frame is cut into a grid of *cores* (each pixel in
+exactly one core); a tile is its core grown by a *halo* that covers every integration path
+reaching the core: ``halo = ceil(max speed * frame length) + margin`` pixels, where the
+speed is the largest in the motion estimate. Each tile is deblurred on its own (the
+default method with the global motion fixed), and the tiles are blended with weights
+that are 1 on the core and fall linearly to 0 across the halo (1 up to the frame's own
+edges), so neighbouring solutions cross-fade instead of meeting at a seam.
+
+Tiles run in-process one after the other, or as Dask tasks on the engine ``vet batch``
+uses (an embedded ``LocalCluster`` on loopback, or an existing scheduler).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError, VetError
+from ..formats.capture import Capture
+
+#: Pixels added to the longest integration path to make the halo.
+HALO_MARGIN_PX = 16
+#: Smallest core side a tile may have.
+MIN_TILE_PX = 64
+#: ``tile="auto"``: frames with a side over AUTO_ABOVE_PX are solved in tiles of AUTO_TILE_PX.
+AUTO_TILE_PX = 1024
+AUTO_ABOVE_PX = 1536
+
+
+def resolve_tile(tile: int | str | None, shape: tuple[int, int]) -> int | None:
+    """The tile size for a frame of ``shape`` (H, W): an int as given, ``"auto"`` (tiles
+    of :data:`AUTO_TILE_PX` on frames with a side over :data:`AUTO_ABOVE_PX`, else one
+    solve), ``None`` or ``"none"`` for one solve."""
+    if tile is None or tile == "none":
+        return None
+    if tile == "auto":
+        return AUTO_TILE_PX if max(shape) > AUTO_ABOVE_PX else None
+    if isinstance(tile, bool) or not isinstance(tile, int) or tile < MIN_TILE_PX:
+        raise InputError(f"tile must be auto, none or an integer >= {MIN_TILE_PX}, got {tile!r}")
+    return tile
+
+
+@dataclass(frozen=True)
+class Tile:
+    """A tile: ``core`` and ``outer`` boxes ``(y0, y1, x0, x1)`` in frame pixels."""
+
+    core: tuple[int, int, int, int]
+    outer: tuple[int, int, int, int]
+
+    def slices(self, box: str = "outer") -> tuple[slice, slice]:
+        y0, y1, x0, x1 = getattr(self, box)
+        return slice(y0, y1), slice(x0, x1)
+
+
+def halo_px(velocity: np.ndarray, frame_s: float, margin: int = HALO_MARGIN_PX) -> int:
+    """Pixels of halo that cover every integration path of ``velocity`` (H, W, 2) px/s."""
+    speed = float(np.hypot(velocity[..., 0], velocity[..., 1]).max()) if velocity.size else 0.0
+    return int(math.ceil(speed * frame_s)) + margin
+
+
+def tile_grid(shape: tuple[int, int], tile: int, halo: int) -> list[Tile]:
+    """Cores of at most ``tile`` x ``tile`` pixels covering ``shape`` (H, W), each grown by
+    ``halo`` (clipped to the frame)."""
+    if tile < MIN_TILE_PX:
+        raise InputError(f"tile size must be at least {MIN_TILE_PX} pixels, got {tile}")
+    h, w = shape
+    ny, nx = max(1, math.ceil(h / tile)), max(1, math.ceil(w / tile))
+    ys = np.linspace(0, h, ny + 1).round().astype(int)
+    xs = np.linspace(0, w, nx + 1).round().astype(int)
+    tiles = []
+    for i in range(ny):
+        for j in range(nx):
+            core = (int(ys[i]), int(ys[i + 1]), int(xs[j]), int(xs[j + 1]))
+            outer = (
+                max(0, core[0] - halo),
+                min(h, core[1] + halo),
+                max(0, core[2] - halo),
+                min(w, core[3] + halo),
+            )
+            tiles.append(Tile(core, outer))
+    return tiles
+
+
+def blend_weight(tile: Tile, shape: tuple[int, int], halo: int) -> np.ndarray:
+    """Weight over ``tile.outer``: 1 on the core, falling linearly to 0 across the halo
+    towards neighbouring tiles, 1 up to the frame's own edges."""
+    h, w = shape
+    y0, y1, x0, x1 = tile.outer
+    c0, c1, d0, d1 = tile.core
+
+    def ramp(lo: int, hi: int, core_lo: int, core_hi: int, n: int) -> np.ndarray:
+        pos = np.arange(lo, hi, dtype=np.float32) + 0.5
+        rise = (
+            np.ones_like(pos) if core_lo == 0 else np.clip((pos - lo) / max(core_lo - lo, 1), 0, 1)
+        )
+        fall = (
+            np.ones_like(pos) if core_hi == n else np.clip((hi - pos) / max(hi - core_hi, 1), 0, 1)
+        )
+        return np.minimum(rise, fall)
+
+    wy = ramp(y0, y1, c0, c1, h)
+    wx = ramp(x0, x1, d0, d1, w)
+    wgt = np.outer(wy, wx)
+    wgt[c0 - y0 : c1 - y0, d0 - x0 : d1 - x0] = 1.0
+    return wgt
+
+
+def crop_capture(cap: Capture, tile: Tile) -> Capture:
+    """The capture restricted to ``tile.outer``: every per-pixel array cropped, the rest
+    (rig, metadata, time bins) shared."""
+    ys, xs = tile.slices()
+    h, w = cap.shape
+    changes: dict[str, Any] = {}
+    for f in dataclasses.fields(cap):
+        value = getattr(cap, f.name)
+        if not isinstance(value, np.ndarray) or value.ndim < 2:
+            continue
+        if value.shape[:2] == (h, w):
+            changes[f.name] = np.ascontiguousarray(value[ys, xs])
+        elif value.ndim >= 3 and value.shape[1:3] == (h, w):
+            changes[f.name] = np.ascontiguousarray(value[:, ys, xs])
+    return dataclasses.replace(cap, **changes)
+
+
+def deblur_tile(
+    solve: Callable[..., Any],
+    cap: Capture,
+    velocity: np.ndarray,
+    motion_model: str,
+    options: object | None,
+) -> tuple[np.ndarray, str]:
+    """One tile deblurred by ``solve`` (:func:`stages.deblur.deblur`) with a given motion:
+    (radiance (H, W, C) in output units, what its still pixels took)."""
+    img, _vel = solve(
+        cap, method="vet", motion=velocity, motion_model=motion_model, options=options
+    )
+    return img.radiance, str(img.meta.get("still_pixels", ""))
+
+
+def _deblur_tile_on_worker(*args: Any) -> tuple[np.ndarray, str]:
+    from ..cluster import limit_threads
+
+    limit_threads()  # N workers mean N cores, on an embedded or an external cluster
+    return deblur_tile(*args)
+
+
+def _tile_jobs(
+    cap: Capture, velocity: np.ndarray, tiles: list[Tile]
+) -> Iterator[tuple[Capture, np.ndarray]]:
+    for t in tiles:
+        ys, xs = t.slices()
+        yield crop_capture(cap, t), np.ascontiguousarray(velocity[ys, xs])
+
+
+def deblur_in_tiles(
+    solve: Callable[..., Any],
+    cap: Capture,
+    velocity: np.ndarray,
+    motion_model: str,
+    options: object | None,
+    tile: int,
+    workers: int = 1,
+    scheduler: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Deblur ``cap`` tile by tile with the whole frame's ``velocity`` (H, W, 2) px/s,
+    each tile by ``solve`` (:func:`stages.deblur.deblur`, passed in by its caller).
+
+    Returns the blended radiance (H, W, C) in output units and a record ``{"size",
+    "halo_px", "count", "executor", "workers", "still_pixels"}``.
+    """
+    tf = float(cap.meta.get("integration_s", cap.rig.frame_s))
+    halo = halo_px(velocity, tf)
+    tiles = tile_grid(cap.shape, tile, halo)
+    h, w = cap.shape
+    acc = np.zeros((h, w, cap.I.shape[2]), np.float32)
+    wsum = np.zeros((h, w), np.float32)
+    info: dict[str, Any] = {}
+    still: set[str] = set()
+    for i, (radiance, still_pixels) in _run(
+        solve,
+        _tile_jobs(cap, velocity, tiles),
+        len(tiles),
+        motion_model,
+        options,
+        workers,
+        scheduler,
+        progress,
+        info,
+    ):
+        ys, xs = tiles[i].slices()
+        wgt = blend_weight(tiles[i], (h, w), halo)
+        acc[ys, xs] += radiance * wgt[..., None]
+        wsum[ys, xs] += wgt
+        still.add(still_pixels)
+    acc /= np.maximum(wsum, 1e-12)[..., None]
+    record = {
+        "size": int(tile),
+        "halo_px": int(halo),
+        "count": len(tiles),
+        "executor": info.get("executor", "in-process"),
+        "workers": int(info.get("workers", 1)),
+        "still_pixels": still.pop() if len(still) == 1 else "mixed",
+    }
+    return acc, record
+
+
+def _run(
+    solve: Callable[..., Any],
+    jobs: Iterator[tuple[Capture, np.ndarray]],
+    n: int,
+    motion_model: str,
+    options: object | None,
+    workers: int,
+    scheduler: str | None,
+    progress: Callable[[int, int], None] | None,
+    info: dict[str, Any],
+) -> Iterator[tuple[int, tuple[np.ndarray, str]]]:
+    """Yield ``(tile index, deblur_tile result)`` as tiles finish: in-process with
+    ``workers <= 1`` and no ``scheduler``, else as Dask tasks."""
+    if scheduler is None and workers <= 1:
+        info["executor"] = "in-process"
+        for i, (cap, vel) in enumerate(jobs):
+            yield i, deblur_tile(solve, cap, vel, motion_model, options)
+            if progress:
+                progress(i + 1, n)
+        return
+    import distributed
+
+    from ..cluster import dask_client
+
+    with dask_client(workers, scheduler, info) as client:
+        index = {}
+        for i, (cap, vel) in enumerate(jobs):
+            index[
+                client.submit(
+                    _deblur_tile_on_worker, solve, cap, vel, motion_model, options, pure=False
+                )
+            ] = i
+        done = 0
+        for fut in distributed.as_completed(list(index), loop=client.loop):
+            try:
+                result = fut.result()
+            except VetError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - a worker died or a task failed
+                raise VetError(f"tile {index[fut]} failed on a Dask worker ({exc})") from None
+            fut.release()
+            done += 1
+            if progress:
+                progress(done, n)
+            yield index[fut], result

@@ -1,0 +1,146 @@
+"""What one input file may cost: bytes, compression ratio, metadata size and depth.
+
+Every reader checks what a file *declares* (array shapes in npz member headers, the data
+window and channel count of an EXR header, the zip directory's sizes) against these
+limits before it inflates or allocates anything, so a small crafted file cannot claim a
+worker's memory or time:
+
+- :data:`MAX_INPUT_BYTES` (``VET_MAX_INPUT_BYTES``, default 2 GiB): the pixel data one
+  input may declare, and the largest file (or standard input) vet reads.
+- :data:`MAX_COMPRESSION_RATIO` (``VET_MAX_COMPRESSION_RATIO``, default 100): declared
+  pixel bytes per byte on disk, beyond the first :data:`SMALL_INPUT_BYTES` (64 MiB) that
+  any file may declare (so a small constant test image still reads). Images of measured
+  light compress far less than 100:1 with zip or EXR codecs; a bomb of zeros reaches
+  about 1000:1 with deflate.
+- :data:`MAX_META_BYTES` (4 MiB) and :data:`MAX_META_DEPTH` (32 levels) for JSON
+  metadata, parsed without recursion errors.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+from ..errors import FormatError
+
+
+def _env_int(name: str, default: int) -> int:
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return default
+    try:
+        value = int(float(text))
+    except ValueError:
+        return default
+    return value if value > 0 else default
+
+
+#: Largest pixel data (bytes) one input may declare, and largest file read.
+MAX_INPUT_BYTES = _env_int("VET_MAX_INPUT_BYTES", 2 * 1024**3)
+#: Largest declared pixel bytes per byte of file on disk (beyond SMALL_INPUT_BYTES).
+MAX_COMPRESSION_RATIO = _env_int("VET_MAX_COMPRESSION_RATIO", 100)
+#: Pixel data any file may declare whatever its size on disk.
+SMALL_INPUT_BYTES = 64 * 1024**2
+#: Largest JSON metadata text (bytes, UTF-8) and nesting depth accepted.
+MAX_META_BYTES = 4 * 1024**2
+MAX_META_DEPTH = 32
+
+
+def check_size(nbytes: int, what: str) -> None:
+    """Refuse to allocate more than :data:`MAX_INPUT_BYTES` for one input.
+
+    Raises
+    ------
+    FormatError
+        ``nbytes`` is negative or over the limit.
+    """
+    if nbytes < 0 or nbytes > MAX_INPUT_BYTES:
+        raise FormatError(
+            f"{what}: declares {nbytes} bytes of pixel data, over the limit of "
+            f"{MAX_INPUT_BYTES} (set VET_MAX_INPUT_BYTES to raise it)"
+        )
+
+
+def check_file_size(nbytes_on_disk: int, what: str) -> None:
+    """Refuse a file larger than :data:`MAX_INPUT_BYTES` before reading it."""
+    if nbytes_on_disk > MAX_INPUT_BYTES:
+        raise FormatError(
+            f"{what}: file is {nbytes_on_disk} bytes, over the limit of "
+            f"{MAX_INPUT_BYTES} (set VET_MAX_INPUT_BYTES to raise it)"
+        )
+
+
+def check_declared(nbytes: int, nbytes_on_disk: int, what: str) -> None:
+    """Check declared pixel bytes against :data:`MAX_INPUT_BYTES` and the bytes on disk.
+
+    Parameters
+    ----------
+    nbytes : int
+        Bytes the file's headers say its arrays hold once decompressed.
+    nbytes_on_disk : int
+        The file's (or the compressed members') size, bytes.
+
+    Raises
+    ------
+    FormatError
+        Over the limit, or more than :data:`MAX_COMPRESSION_RATIO` times the bytes on disk
+        (beyond :data:`SMALL_INPUT_BYTES`): a decompression bomb, refused before inflating.
+    """
+    check_size(nbytes, what)
+    allowed = max(SMALL_INPUT_BYTES, MAX_COMPRESSION_RATIO * max(nbytes_on_disk, 0))
+    if nbytes > allowed:
+        ratio = nbytes / max(nbytes_on_disk, 1)
+        raise FormatError(
+            f"{what}: declares {nbytes} bytes of pixel data from {nbytes_on_disk} bytes on "
+            f"disk (compression ratio {ratio:.0f}:1, over the limit of "
+            f"{MAX_COMPRESSION_RATIO}:1; set VET_MAX_COMPRESSION_RATIO to raise it)"
+        )
+
+
+def _depth(value: Any) -> int:
+    """Nesting depth of parsed JSON (0 for a scalar), without recursion."""
+    deepest = 0
+    stack = [(value, 0)]
+    while stack:
+        v, d = stack.pop()
+        if isinstance(v, dict):
+            v = list(v.values())
+        if isinstance(v, list):
+            d += 1
+            deepest = max(deepest, d)
+            if d > MAX_META_DEPTH:
+                return d
+            stack.extend((x, d) for x in v)
+    return deepest
+
+
+def parse_json(
+    text: str | bytes, what: str, kind: str = "metadata", max_bytes: int | None = None
+) -> Any:
+    """Parse JSON text that a file carries, bounded in size and nesting depth.
+
+    Raises
+    ------
+    FormatError
+        Text over ``max_bytes`` (default :data:`MAX_META_BYTES`), not JSON, not UTF-8, or nested deeper than
+        :data:`MAX_META_DEPTH` (one line naming ``kind``; never a RecursionError).
+    """
+    size = len(text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text)
+    limit = MAX_META_BYTES if max_bytes is None else max_bytes
+    if size > limit:
+        raise FormatError(f"{what}: {kind} is {size} bytes, over the limit of {limit} bytes")
+    try:
+        value = json.loads(text)
+    except RecursionError:
+        value = None
+        depth = MAX_META_DEPTH + 1
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise FormatError(f"{what}: {kind} is not valid JSON") from None
+    else:
+        depth = _depth(value)
+    if depth > MAX_META_DEPTH:
+        raise FormatError(
+            f"{what}: {kind} is nested more than {MAX_META_DEPTH} levels deep; refusing it"
+        )
+    return value

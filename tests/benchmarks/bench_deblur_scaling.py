@@ -1,0 +1,99 @@
+"""Benchmark: deblur time and peak memory against frame size (translate:30,0).
+
+Each capture (``builtin:interior`` resampled to the size, mono or RGB, 131 subframes) is
+simulated in one subprocess and written to a temporary ``.npz``; the default deblur then
+runs in a fresh subprocess that reads it, so the peak resident memory it reports
+(``ru_maxrss``) is the deblur's alone (reading the capture included). Prints one row per
+size: megapixels, channels, seconds, peak GB and the dark-pixel RMS error (stops, as
+``vet evaluate`` scores).
+
+Run: ``.venv/bin/python -m tests.benchmarks.bench_deblur_scaling [WxH[:mono|rgb] ...]``
+(default: mono at 640x512, 1280x1024 and 2560x2048 (0.3, 1.3 and 5.2 MP), and RGB at
+1280x1024; ``4096x3072:mono`` adds 12.6 MP where the machine has the memory for it).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+DEFAULT_CASES = ("640x512:mono", "1280x1024:mono", "1280x1024:rgb", "2560x2048:mono")
+
+
+def _simulate(size: str, mono: bool, path: str) -> None:
+    """Child: simulate the capture and write it to ``path`` (.npz)."""
+    import numpy as np
+
+    from stages.formats.capture import write_capture
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import Scene, builtin_interior, luminance, parse_size
+    from stages.simulate import simulate
+
+    w, h = parse_size(size)
+    sc = builtin_interior(w, h)
+    if mono:
+        sc = Scene(luminance(sc.radiance)[..., None].astype(np.float32), ["Y"], sc.source)
+    rig = RigParams(sensor_size=(w, h))
+    cap = simulate(sc, parse_motion("translate:30,0"), rig, seed=0, methods=["vet"])["vet"]
+    write_capture(path, cap)
+
+
+def _deblur(path: str) -> None:
+    """Child: deblur the capture at ``path``; print time, peak RSS and error as JSON."""
+    import resource
+    import time
+
+    from stages.deblur import deblur
+    from stages.formats.capture import read_capture
+    from stages.metrics import measurable_floor, stops_error
+
+    t0 = time.perf_counter()
+    cap = read_capture(path)
+    img, _ = deblur(cap, "vet")
+    dt = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6  # kB -> GB
+    floor = measurable_floor(cap.rig, cap.radiance_scale)
+    err = stops_error(img.radiance, cap.truth, cap.T, cap.rig.frame_s, floor=floor)
+    print(json.dumps({"time_s": dt, "peak_gb": peak, "dark_rms": err["dark"]["rms"]}))
+
+
+def measure(case: str, tmp: Path) -> dict:
+    """Simulate then deblur one ``WxH[:mono|rgb]`` case in subprocesses."""
+    size, _, kind = case.partition(":")
+    kind = kind or "mono"
+    path = str(tmp / f"{size}_{kind}.npz")
+    me = [sys.executable, "-m", "tests.benchmarks.bench_deblur_scaling"]
+    subprocess.run([*me, "--simulate", size, kind, path], check=True)
+    res = subprocess.run([*me, "--deblur", path], check=True, capture_output=True, text=True)
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    w, h = (int(v) for v in size.split("x"))
+    out.update(size=size, kind=kind, mp=w * h / 1e6)
+    return out
+
+
+def main(*cases: str) -> list[dict]:
+    rows = []
+    print(f"{'size':>10} {'MP':>5} {'kind':>4} {'time s':>7} {'peak GB':>8} {'dark RMS':>8}")
+    with tempfile.TemporaryDirectory(prefix="vet-bench-") as tmp:
+        for case in cases or DEFAULT_CASES:
+            r = measure(case, Path(tmp))
+            rows.append(r)
+            print(
+                f"{r['size']:>10} {r['mp']:5.2f} {r['kind']:>4} {r['time_s']:7.1f}"
+                f" {r['peak_gb']:8.2f} {r['dark_rms']:8.3f}",
+                flush=True,
+            )
+    return rows
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["--simulate"]:
+        _simulate(sys.argv[2], sys.argv[3] == "mono", sys.argv[4])
+    elif sys.argv[1:2] == ["--deblur"]:
+        _deblur(sys.argv[2])
+    else:
+        main(*sys.argv[1:])

@@ -1,0 +1,142 @@
+"""Benchmark: tiled deblur of a large mono capture (translate:30,0), in-process and on Dask.
+
+Simulates the capture in a child process, then deblurs it in fresh child processes, each
+reporting its wall time, peak memory (ru_maxrss of the process and of its worker
+processes), the dark-pixel RMS error in stops against the truth (as ``vet evaluate``
+scores) and the same error split into a band of 8 px on each side of every tile border
+(the seams) and the rest; the one-piece solve is scored on the same bands. Configurations: one solve (frames up to 1.3 MP only), tiles
+in-process, tiles on an embedded Dask LocalCluster of 2 workers.
+
+Run: ``.venv/bin/python -m tests.benchmarks.bench_tiles [WxH] [TILE]`` (default 4096x3072
+with 1024 px tiles; ``make bench`` runs 2048x1536 with 1024 px tiles to stay short).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+SEAM_PX = 8
+
+
+def _simulate(size: str, path: str) -> None:
+    import numpy as np
+
+    from stages.formats import write_capture
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import Scene, builtin_interior, luminance, parse_size
+    from stages.simulate import simulate
+
+    w, h = parse_size(size)
+    sc = builtin_interior(w, h)
+    mono = Scene(luminance(sc.radiance)[..., None].astype(np.float32), ["Y"], sc.source + " (mono)")
+    cap = simulate(mono, parse_motion("translate:30,0"), RigParams(sensor_size=(w, h)), seed=0)
+    write_capture(path, cap["vet"])
+
+
+def _deblur(path: str, tile: str, workers: int, seam_tile: int) -> dict:
+    import numpy as np
+
+    from stages.deblur import deblur
+    from stages.deblur.tiles import halo_px, tile_grid
+    from stages.formats import read_capture
+    from stages.metrics import measurable_floor, stops_error
+
+    cap = read_capture(path)
+    t0 = time.perf_counter()
+    img, vel = deblur(cap, tile=None if tile == "none" else int(tile), workers=workers)
+    dt = time.perf_counter() - t0
+    rig = cap.rig
+    floor = measurable_floor(rig, cap.radiance_scale)
+
+    def dark(mask: np.ndarray | None = None) -> float:
+        err = stops_error(img.radiance, cap.truth, cap.T, rig.frame_s, floor=floor, mask=mask)
+        return float(err["dark"]["rms"])
+
+    out = {
+        "time_s": round(dt, 1),
+        "peak_gb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6, 2),
+        "worker_peak_gb": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1e6, 2),
+        "dark_rms": round(dark(), 4),
+        "tiles": img.meta.get("tiles"),
+    }
+    if seam_tile:  # the seams of seam_tile's grid, also scored on a one-piece solve
+        h, w = cap.shape
+        seam = np.zeros((h, w), bool)
+        tf = float(cap.meta.get("integration_s", rig.frame_s))
+        for t in tile_grid((h, w), seam_tile, halo_px(vel, tf)):
+            y0, y1, x0, x1 = t.core
+            for y in (y0, y1):
+                if 0 < y < h:
+                    seam[max(0, y - SEAM_PX) : y + SEAM_PX, x0:x1] = True
+            for x in (x0, x1):
+                if 0 < x < w:
+                    seam[y0:y1, max(0, x - SEAM_PX) : x + SEAM_PX] = True
+        out["seam_dark_rms"] = round(dark(seam), 4)
+        out["rest_dark_rms"] = round(dark(~seam), 4)
+    return out
+
+
+def _child(*args: str) -> dict | None:
+    cmd = [sys.executable, "-m", "tests.benchmarks.bench_tiles", "--child", *args]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if res.returncode != 0:
+        print(f"  {' '.join(args[:1])} failed: {res.stderr.strip().splitlines()[-1:]}")
+        return None
+    lines = res.stdout.strip().splitlines()
+    return json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
+
+
+def main(size: str = "2048x1536", tile: str = "1024") -> None:
+    w, h = (int(v) for v in size.split("x"))
+    with tempfile.TemporaryDirectory(prefix="vet-bench-tiles-") as tmp:
+        path = str(Path(tmp) / "cap.npz")
+        t0 = time.perf_counter()
+        _child("simulate", size, path)
+        print(f"simulate {size} mono translate:30,0: {time.perf_counter() - t0:.1f} s", flush=True)
+        runs = [("none", 1)] if w * h <= 1.4e6 else []
+        runs += [(tile, 1), (tile, 2)]
+        results = {}
+        for t, j in runs:
+            r = _child("deblur", path, t, str(j), tile)
+            if r is None:
+                continue
+            results[(t, j)] = r
+            label = "one solve" if t == "none" else f"tiles {t} px, {j} worker(s)"
+            seam = (
+                f", seam band {r['seam_dark_rms']:.4f} vs rest {r['rest_dark_rms']:.4f}"
+                if "seam_dark_rms" in r
+                else ""
+            )
+            tiles = r.get("tiles") or {}
+            print(
+                f"{size} {label}: {r['time_s']:.1f} s, peak {r['peak_gb']:.2f} GB "
+                f"(workers {r['worker_peak_gb']:.2f} GB), dark RMS {r['dark_rms']:.4f} stops{seam}"
+                + (
+                    f"; {tiles.get('count')} tiles, halo {tiles.get('halo_px')} px" if tiles else ""
+                ),
+                flush=True,
+            )
+        one, two = results.get((tile, 1)), results.get((tile, 2))
+        if one and two:
+            print(f"2 workers vs 1: {one['time_s'] / two['time_s']:.2f}x", flush=True)
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["--child"]:
+        what, *rest = sys.argv[2:]
+        if what == "simulate":
+            _simulate(*rest)
+            print("{}")
+        else:
+            print(json.dumps(_deblur(rest[0], rest[1], int(rest[2]), int(rest[3]))))
+    else:
+        main(*sys.argv[1:])

@@ -1,0 +1,144 @@
+"""Tiled deblur (stages.deblur.tiles): the grid, the blend, the crop, and that a tiled
+solve agrees with the one-piece solve, in-process and on Dask."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from stages.deblur import deblur
+from stages.deblur.tiles import (
+    Tile,
+    blend_weight,
+    crop_capture,
+    halo_px,
+    resolve_tile,
+    tile_grid,
+)
+from stages.errors import InputError
+from stages.metrics import measurable_floor, stops_error
+from stages.motion import parse_motion
+from stages.rig import RigParams
+from stages.scenes import builtin_interior
+from stages.simulate import simulate
+from vet_cli.main import cli
+
+
+def test_cores_cover_every_pixel_once_and_halos_stay_in_frame():
+    shape, halo = (300, 530), 40
+    tiles = tile_grid(shape, 128, halo)
+    count = np.zeros(shape, int)
+    for t in tiles:
+        y0, y1, x0, x1 = t.core
+        assert y1 - y0 <= 128 and x1 - x0 <= 128
+        count[y0:y1, x0:x1] += 1
+        oy0, oy1, ox0, ox1 = t.outer
+        assert (oy0, ox0) == (max(0, y0 - halo), max(0, x0 - halo))
+        assert (oy1, ox1) == (min(300, y1 + halo), min(530, x1 + halo))
+    assert np.all(count == 1)
+    assert len(tiles) == 3 * 5
+    with pytest.raises(InputError, match="at least 64"):
+        tile_grid(shape, 32, halo)
+
+
+def test_halo_covers_the_longest_integration_path():
+    vel = np.zeros((10, 10, 2), np.float32)
+    vel[3, 4] = (30.0, -40.0)  # 50 px/s
+    assert halo_px(vel, 1.0, margin=0) == 50
+    assert halo_px(vel, 0.5, margin=16) == 25 + 16
+    assert halo_px(np.zeros((4, 4, 2)), 1.0, margin=16) == 16
+
+
+def test_blending_a_constant_reproduces_it_and_cores_weigh_one():
+    shape, halo = (200, 260), 30
+    tiles = tile_grid(shape, 96, halo)
+    acc, wsum = np.zeros(shape), np.zeros(shape)
+    for t in tiles:
+        w = blend_weight(t, shape, halo)
+        ys, xs = t.slices()
+        assert w.shape == (ys.stop - ys.start, xs.stop - xs.start)
+        cy, cx = t.slices("core")
+        assert np.all(
+            w[cy.start - ys.start : cy.stop - ys.start, cx.start - xs.start : cx.stop - xs.start]
+            == 1
+        )
+        acc[ys, xs] += 7.0 * w
+        wsum[ys, xs] += w
+    assert wsum.min() >= 1.0
+    np.testing.assert_allclose(acc / wsum, 7.0)
+    # a lone tile's weight is 1 everywhere (the frame's own edges do not fade)
+    lone = Tile((0, 50, 0, 60), (0, 50, 0, 60))
+    assert np.all(blend_weight(lone, (50, 60), halo) == 1)
+
+
+def test_resolve_tile():
+    assert resolve_tile("auto", (1024, 1280)) is None
+    assert resolve_tile("auto", (3072, 4096)) == 1024
+    assert resolve_tile("none", (3072, 4096)) is None
+    assert resolve_tile(256, (100, 100)) == 256
+    with pytest.raises(InputError):
+        resolve_tile(10, (100, 100))
+
+
+@pytest.fixture(scope="module")
+def moving_capture():
+    rig = RigParams(sensor_size=(192, 96))
+    scene = builtin_interior(192, 96)
+    return simulate(scene, parse_motion("translate:30,0"), rig, seed=3, methods=["vet"])["vet"]
+
+
+def test_crop_takes_every_per_pixel_array(moving_capture):
+    cap = moving_capture
+    t = Tile((10, 40, 20, 70), (0, 50, 5, 90))
+    sub = crop_capture(cap, t)
+    assert sub.I.shape[:2] == sub.T.shape == (50, 85)
+    np.testing.assert_array_equal(sub.I, cap.I[0:50, 5:90])
+    np.testing.assert_array_equal(sub.measure, cap.measure[:, 0:50, 5:90])
+    np.testing.assert_array_equal(sub.truth_motion, cap.truth_motion[0:50, 5:90])
+    np.testing.assert_array_equal(sub.measure_times, cap.measure_times)
+    assert sub.rig == cap.rig
+
+
+def _dark_rms(cap, img):
+    err = stops_error(
+        img.radiance,
+        cap.truth,
+        exposure_time=cap.T,
+        frame_s=cap.rig.frame_s,
+        floor=measurable_floor(cap.rig, cap.radiance_scale),
+    )
+    return err["dark"]["rms"]
+
+
+def test_tiled_solve_matches_the_one_piece_solve(moving_capture):
+    cap = moving_capture
+    whole, _ = deblur(cap, motion_init="truth")
+    tiled, vel = deblur(cap, motion_init="truth", tile=96)
+    assert tiled.meta["tiles"]["count"] == 2
+    assert tiled.meta["tiles"]["halo_px"] == 30 + 16
+    np.testing.assert_array_equal(vel, cap.truth_motion)
+    a, b = _dark_rms(cap, whole), _dark_rms(cap, tiled)
+    assert b <= a * 1.05, (a, b)
+    assert tiled.radiance.shape == whole.radiance.shape
+    assert tiled.mask.shape == whole.mask.shape
+
+
+@pytest.mark.slow
+def test_tiles_on_a_separately_started_dask_cluster(moving_capture, tmp_path):
+    from tests.dask_local import separate_dask_cluster
+
+    cap = moving_capture
+    local, _ = deblur(cap, motion_init="truth", tile=96)
+    with separate_dask_cluster(tmp_path, workers=2) as address:
+        remote, _ = deblur(cap, motion_init="truth", tile=96, scheduler=address)
+    assert remote.meta["tiles"]["executor"] == f"dask scheduler {address}"
+    assert remote.meta["tiles"]["workers"] >= 1
+    np.testing.assert_allclose(remote.radiance, local.radiance, rtol=1e-5, atol=1e-6)
+
+
+def test_cli_tile_options(tmp_path):
+    res = CliRunner().invoke(cli, ["deblur", "x.exr", "-o", "y.exr", "--tile", "32"])
+    assert res.exit_code == 2 and "tile size >= 64" in res.output
+    res = CliRunner().invoke(cli, ["deblur", "x.exr", "-o", "y.exr", "-j", "0"])
+    assert res.exit_code == 2

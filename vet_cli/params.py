@@ -1,0 +1,87 @@
+"""Option value types: every invalid value is a usage error (exit 2) naming the valid form.
+
+The parsers live in ``stages`` (they serve files and batch parameters too) and raise
+:class:`~stages.errors.InputError`; these types turn that into click's usage error.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import click
+
+from stages.errors import InputError
+
+
+class MotionSpec(click.ParamType):
+    """A motion SPEC, checked by :func:`stages.motion.parse_motion`; the value stays text.
+
+    ``field:PATH`` is checked for its form only: reading the file is the command's work
+    (a missing or wrong file is a runtime error, exit 1).
+    """
+
+    name = "SPEC"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        from stages.motion import parse_motion
+
+        text = str(value)
+        if text.strip().startswith("field:"):
+            if not text.strip()[len("field:") :]:
+                self.fail("field:PATH needs the path of a motion file", param, ctx)
+            return text
+        try:
+            parse_motion(text)
+        except InputError as exc:
+            self.fail(str(exc), param, ctx)
+        return text
+
+
+class Size(click.ParamType):
+    """``WxH`` in pixels, returned as ``(width, height)`` (:func:`stages.scenes.parse_size`)."""
+
+    name = "WxH"
+
+    def get_metavar(self, *args: Any, **kwargs: Any) -> str:
+        return "WxH"
+
+    def convert(
+        self, value: Any, param: click.Parameter | None, ctx: click.Context | None
+    ) -> tuple[int, int]:
+        from stages.scenes import parse_size
+
+        if isinstance(value, tuple):
+            return value
+        try:
+            return parse_size(str(value))
+        except InputError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+class FiniteFloatRange(click.FloatRange):
+    """:class:`click.FloatRange` that also refuses ``nan`` and ``inf``."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        rv = super().convert(value, param, ctx)
+        if rv is not None and not math.isfinite(rv):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return rv
+
+
+def positive() -> FiniteFloatRange:
+    """A finite float > 0."""
+    return FiniteFloatRange(min=0, min_open=True)
+
+
+def non_negative() -> FiniteFloatRange:
+    """A finite float >= 0."""
+    return FiniteFloatRange(min=0)
+
+
+MOTION = MotionSpec()
+SIZE = Size()
+#: Noise seeds: numpy's generators take non-negative integers.
+SEED = click.IntRange(min=0)
+#: Exposure shifts in stops (stages.tonemap's range).
+STOPS = FiniteFloatRange(-64, 64)
