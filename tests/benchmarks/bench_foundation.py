@@ -29,6 +29,7 @@ def bench_simulate_and_hdr_static() -> None:
         "1",
         "-o",
         cap,
+        "--force",  # each repeat replaces the last one's file
     )
     t_sim, runs = time_cmd(sim, repeat=2)
     print(
@@ -48,7 +49,9 @@ def bench_simulate_and_hdr_static() -> None:
     oiiotool = BIN / "oiiotool"
     copy = out / "copy.exr"
     t_copy, rc = time_cmd([str(oiiotool), str(cap), "-o", str(copy)], repeat=3)
-    t_hdr, rh = time_cmd(vet_cmd("-q", "hdr-static", cap, "-o", out / "hdr1280.exr"), repeat=3)
+    t_hdr, rh = time_cmd(
+        vet_cmd("-q", "hdr-static", cap, "-o", out / "hdr1280.exr", "--force"), repeat=3
+    )
     size_mb = cap.stat().st_size / 1e6
     print(f"capture file: {size_mb:.1f} MB (I, T, 8 measuring bins, truth, truth_motion)")
     print(f"oiiotool copy: median {t_copy:.3f} s  runs {[round(r, 3) for r in rc]}")

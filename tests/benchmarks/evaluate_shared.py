@@ -87,7 +87,10 @@ def run_evaluate(
     t0 = time.perf_counter()
     cmd = vet_cmd("-q", "evaluate", path, "--motion", spec, "--size", f"{w}x{h}")
     cmd += ["--seed", str(seed)]
-    res = subprocess.run([*cmd, *extra, "-o", str(folder)], capture_output=True, text=True)
+    # --force: a rerun of the sweep replaces its own earlier reports
+    res = subprocess.run(
+        [*cmd, *extra, "-o", str(folder), "--force"], capture_output=True, text=True
+    )
     run = f"{path.stem} {spec} {' '.join(extra)} seed {seed} ({w}x{h})"
     if res.returncode != 0:
         why = (res.stderr.strip().splitlines() or [f"exit status {res.returncode}"])[-1]
