@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -202,3 +203,31 @@ def test_known_answer_cycle_detection(tmp_path):
     }
     assert _imports("stages.formats.a", pkg / "a.py", known) == {"stages.formats.b"}
     assert _imports("stages.formats.b", pkg / "b.py", known) == {"stages.formats.a"}
+
+
+#: Figures a docstring may hold: constants and format examples, not measurements.
+ALLOWED_FIGURES = {"0.2126", "0.7152", "0.0722", "0.0075"}
+
+
+def benchmark_figures() -> list[str]:
+    """Docstring lines of stages/ and vet_cli/ holding a number with three or more
+    decimals (a measured figure, which goes stale with every commit) other than the
+    allowed constants."""
+    found = []
+    for pkg in ("stages", "vet_cli"):
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            for node in ast.walk(tree):
+                if not isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef):
+                    continue
+                doc = ast.get_docstring(node, clean=False) or ""
+                for line in doc.splitlines():
+                    numbers = set(re.findall(r"\d+\.\d{3,}", line)) - ALLOWED_FIGURES
+                    if numbers or re.search(r"times faster|x faster", line):
+                        found.append(f"{path.relative_to(ROOT)}: {line.strip()}")
+    return found
+
+
+def test_docstrings_hold_at_most_five_benchmark_figures():
+    figures = benchmark_figures()
+    assert len(figures) <= 5, "\n".join(figures)
