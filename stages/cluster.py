@@ -114,7 +114,7 @@ def dask_client(
                 dashboard_address=None,
                 worker_dashboard_address=None,
                 env=dict(WORKER_ENV),
-                silence_logs=logging.WARNING,
+                silence_logs=logging.ERROR,  # worker heartbeat warnings under load: noise
             )
             client = distributed.Client(cluster, set_as_default=False)
             info["executor"] = f"dask LocalCluster, {workers} worker processes on 127.0.0.1"

@@ -168,7 +168,9 @@ def test_example_runs_as_pasted(doc, line, text, tmp_path_factory):
         if cluster is not None:
             cluster.__exit__(None, None, None)
     assert res.returncode == 0, f"{doc.name}:{line}\n{script}\n--- stderr:\n{res.stderr[-3000:]}"
-    assert "Traceback" not in res.stderr
+    # No traceback out of vet's own code (Dask's worker heartbeats may log one of theirs
+    # on a loaded machine while the command succeeds).
+    assert not re.search(r'File "[^"]*/(stages|vet_cli)/', res.stderr), res.stderr[-3000:]
 
 
 def test_every_document_with_examples_is_covered():

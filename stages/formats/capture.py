@@ -12,7 +12,8 @@ layer              channels     meaning
 ``A``              Y            optional fixed transmittance (adaptive attenuation)
 ``M00`` ...        Y or R,G,B   optional measuring images: each is the sum of the
                                 measuring subframes in one time bin, DN; bin times
-                                in ``meta["measure_times"]``
+                                in ``meta["measure_times"]``; two digits at least
+                                (``M100`` follows ``M99``)
 ``truth``          Y or R,G,B   optional ground truth: scene radiance at t = 0, in
                                 scene units (simulated captures)
 ``truth_motion``   u, v         optional true image velocity at t = 0, pixels/s
@@ -155,7 +156,10 @@ class Capture:
         except InputError as exc:
             raise FormatError(f"{what}: {exc}") from None
         channels = data.channels["I"]
-        mkeys = sorted(k for k in data.layers if len(k) == 3 and k[0] == "M" and k[1:].isdigit())
+        mkeys = sorted(
+            (k for k in data.layers if len(k) >= 3 and k[0] == "M" and k[1:].isdigit()),
+            key=lambda k: int(k[1:]),
+        )
         measure = np.stack([data.layers[k] for k in mkeys]) if mkeys else None
         mt = meta.get("measure_times")
         measure_times = (

@@ -354,7 +354,7 @@ def check_layers(
             f"{what}: channels: {declared} but layer {base or 'image'!r} holds {channels[base]}"
         )
     if kind == "capture":
-        bins = [k for k in layers if len(k) == 3 and k[0] == "M" and k[1:].isdigit()]
+        bins = [k for k in layers if len(k) >= 3 and k[0] == "M" and k[1:].isdigit()]
         image = channels.get("I")
         wanted = {"T": ["Y"], "A": ["Y"], "truth_motion": ["u", "v"]}
         wanted.update({k: image for k in (*bins, "truth")})
