@@ -1,7 +1,7 @@
 """Evaluation: every method on one scene and motion, one table, plots and pictures.
 
-Reproduces the published comparison (DESIGN.md §6): one :func:`stages.simulate.simulate`
-pass renders the VET capture and the comparison captures (long, short, adaptive
+Reproduces the paper's published comparison: one :func:`stages.simulate.simulate` pass
+renders the VET capture and the comparison captures (long, short, adaptive
 attenuation) from the same scene, motion and noise; each is reconstructed (hdr-static for
 the comparison methods and for VET without optimisation; deblur for VET with it, default
 and published methods, and the default method with the true motion as an oracle) and
@@ -87,8 +87,8 @@ def run_evaluation(
 ) -> Evaluation:
     """Simulate, reconstruct and score the methods in ``rows`` (module docstring).
 
-    ``rig_changes`` are :class:`~stages.rig.RigParams` fields that differ from
-    DESIGN.md's defaults; ``scale`` and ``reach_subframes`` set the radiance scale as in
+    ``rig_changes`` are :class:`~stages.rig.RigParams` fields that differ from its
+    defaults; ``scale`` and ``reach_subframes`` set the radiance scale as in
     :func:`stages.simulate.simulate`. Only the comparison captures that ``rows`` needs
     are rendered; the VET capture always is, since it defines the dark/bright split.
     ``progress(message)`` names each part as it starts (the simulation, then one per

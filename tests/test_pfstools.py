@@ -74,3 +74,42 @@ def test_long_metadata_is_split_and_legacy_attribute_still_reads(tmp_path):
     out.write_image(np.asarray(pixels, np.float32))
     out.close()
     assert read_layered(legacy).meta == meta
+
+
+@needs_pfs
+def test_mono_hdr_goes_through_pfstools(tmp_path):
+    """builtin:chart is mono: its HDR file must still tone-map in pfstools (a lone Y
+    channel gave 'Missing X, Y, Z channels in the PFS stream')."""
+    cap, hdr, png = tmp_path / "c.exr", tmp_path / "h.exr", tmp_path / "h.png"
+    assert run_vet("simulate", "builtin:chart", "--size", "32x24", "-o", cap).returncode == 0
+    assert run_vet("hdr-static", cap, "-o", hdr).returncode == 0
+    res = _through_pfstools(hdr, png)
+    assert res.returncode == 0 and res.stderr == "", res.stderr
+    assert png.stat().st_size > 0
+
+
+def test_mono_hdr_reads_back_as_one_channel_and_old_y_files_still_read(tmp_path):
+    from stages.formats.hdr import HDRImage, read_hdr, write_hdr
+    from stages.formats.layered import write_layered
+
+    rng = np.random.default_rng(3)
+    rad = rng.random((6, 5, 1), dtype=np.float32) + 0.5
+    mask = rng.integers(0, 4, (6, 5)).astype(np.uint8)
+    image = HDRImage(rad, ["Y"], {"units": "scene"}, mask=mask)
+    new = tmp_path / "new.exr"
+    write_hdr(new, image)
+    assert read_layered(new).channels[""] == ["R", "G", "B"]  # what other tools see
+    back = read_hdr(new)
+    assert back.channels == ["Y"] and back.radiance.shape == (6, 5, 1)
+    np.testing.assert_array_equal(back.radiance, rad)
+    np.testing.assert_array_equal(back.mask, mask)
+    assert "mono" not in back.meta and back.meta["channels"] == ["Y"]
+    # a file of an earlier version: the unnamed layer holds Y
+    old_layers = image.to_layered()
+    old_layers.layers[""], old_layers.channels[""] = rad, ["Y"]
+    old_layers.meta["channels"] = ["Y"]
+    del old_layers.meta["mono"]
+    old = tmp_path / "old.exr"
+    write_layered(old, old_layers)
+    np.testing.assert_array_equal(read_hdr(old).radiance, rad)
+    assert read_hdr(old).channels == ["Y"]

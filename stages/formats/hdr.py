@@ -1,10 +1,15 @@
 """HDR image files: linear float32 radiance plus a quality mask.
 
-Layers: the unnamed layer (``Y`` or ``R, G, B``: viewers show it directly), ``mask.Y``
+Layers: the unnamed layer (``R, G, B``: viewers and pfstools show it directly), ``mask.Y``
 (see :data:`MASK_CODES`), and optionally ``T.Y`` (the capture's exposure time, which lets
 evaluation split bright and dark pixels). Metadata: ``kind = "hdr"``, ``units``
 (``"scene"`` for simulated captures, else ``"DN/s"``), ``radiance_scale``, ``rig``, and
 the ``provenance`` chain.
+
+A mono image is stored as three equal ``R, G, B`` channels with ``mono = true`` in the
+metadata (pfstools builds its colour channels only from R, G, B, so a lone ``Y`` channel
+fails ``pfstmo_*`` with "Missing X, Y, Z channels"); reading gives back one ``Y`` channel.
+Files of earlier versions, with a ``Y`` channel, read the same.
 """
 
 from __future__ import annotations
@@ -39,14 +44,21 @@ class HDRImage:
 
     def to_layered(self) -> Layered:
         data = Layered()
-        data.add("", self.radiance, self.channels)
+        mono = list(self.channels) == ["Y"]
+        if mono:
+            data.add("", np.repeat(self.radiance, 3, axis=2), ["R", "G", "B"])
+        else:
+            data.add("", self.radiance, self.channels)
         if self.mask is not None:
             data.add("mask", self.mask.astype(np.float32), ["Y"])
         if self.exposure_time is not None:
             data.add("T", self.exposure_time, ["Y"])
         meta = dict(self.meta)
         meta["kind"] = "hdr"
-        meta["channels"] = list(self.channels)
+        meta["channels"] = list(data.channels[""])
+        meta.pop("mono", None)
+        if mono:
+            meta["mono"] = True
         meta["mask_codes"] = {str(k): v for k, v in MASK_CODES.items()}
         data.meta = meta
         return data
@@ -57,10 +69,14 @@ class HDRImage:
             raise FormatError(f"{what}: no image channels (R, G, B or Y)")
         mask = data.layers.get("mask")
         t = data.layers.get("T")
+        radiance, channels, meta = data.layers[""], data.channels[""], dict(data.meta)
+        if meta.pop("mono", False) is True and channels == ["R", "G", "B"]:
+            radiance, channels = np.ascontiguousarray(radiance[:, :, :1]), ["Y"]
+            meta["channels"] = channels
         return cls(
-            radiance=data.layers[""],
-            channels=data.channels[""],
-            meta=dict(data.meta),
+            radiance=radiance,
+            channels=channels,
+            meta=meta,
             mask=None if mask is None else mask[:, :, 0].astype(np.uint8),
             exposure_time=None if t is None else t[:, :, 0],
         )
