@@ -212,16 +212,19 @@ def scene_file_kind(path: str | Path) -> tuple[str | None, str | None]:
 def read_linear_image(path: str | Path) -> tuple[np.ndarray, list[str]]:
     """Read any linear image OpenImageIO reads at full resolution (level 0 of mip-maps,
     tiles handled by OIIO), choosing colour channels by name and ignoring alpha."""
-    from .formats.layered import read_oiio
+    from .formats.layered import META_ATTR, _parse_meta, read_oiio
 
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file")
     if p.is_dir():
         raise InputError(f"{p}: is a folder, not an image")
-    pixels, names, _ = read_oiio(p, str(p))
+    pixels, names, attrs = read_oiio(p, str(p), (META_ATTR,))
     names = [n.split(".")[-1].upper() for n in names]
     nch = pixels.shape[2]
+    mono = bool(attrs.get(META_ATTR)) and _parse_meta(attrs[META_ATTR], str(p)).get("mono") is True
+    if mono and "R" in names:  # a vet mono HDR image: three equal channels on disk
+        return np.ascontiguousarray(pixels[:, :, [names.index("R")]]), ["Y"]
     if all(c in names for c in ("R", "G", "B")):
         idx = [names.index(c) for c in ("R", "G", "B")]
         return np.ascontiguousarray(pixels[:, :, idx]), ["R", "G", "B"]

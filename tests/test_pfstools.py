@@ -113,3 +113,14 @@ def test_mono_hdr_reads_back_as_one_channel_and_old_y_files_still_read(tmp_path)
     write_layered(old, old_layers)
     np.testing.assert_array_equal(read_hdr(old).radiance, rad)
     assert read_hdr(old).channels == ["Y"]
+
+
+def test_a_mono_hdr_image_as_a_scene_stays_mono(tmp_path):
+    """A vet mono HDR image (three equal channels on disk) read as a scene is one channel."""
+    from stages.scenes import read_linear_image
+
+    cap, hdr = tmp_path / "c.exr", tmp_path / "h.exr"
+    assert run_vet("simulate", "builtin:chart", "--size", "32x24", "-o", cap).returncode == 0
+    assert run_vet("hdr-static", cap, "-o", hdr).returncode == 0
+    radiance, channels = read_linear_image(hdr)
+    assert channels == ["Y"] and radiance.shape == (24, 32, 1)
