@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 
 from .encoding import check_exposure_gamma, encode, fit_to_gamut
-from .radiance import check_level, estimate_black, estimate_white, luminance, sanitize
+from .radiance import (
+    check_level,
+    estimate_black,
+    estimate_white,
+    luminance,
+    sanitize,
+    warn_if_unlit,
+)
 
 #: Default colour saturation exponent of the log mapping: keeps the scene's colour ratios
 #: in the light a gamma-2.2 display emits (see :func:`tonemap_log`).
@@ -97,12 +103,7 @@ def tonemap_log(
         white = estimate_white(lum)
     if black is None:
         black = estimate_black(lum)
-    if white <= 0.0:
-        warnings.warn(
-            "The radiance has no positive samples; the tone-mapped image is black.",
-            RuntimeWarning,
-            stacklevel=2,
-        )
+    if warn_if_unlit(white, stacklevel=2):
         return np.zeros(shape, dtype=np.float32)
     black = max(black, white / MAX_LOG_RANGE)
     gain = 2.0**exposure

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from .encoding import check_exposure_gamma, encode, fit_to_gamut
-from .radiance import check_level, estimate_white, luminance, sanitize
+from .radiance import check_level, estimate_white, luminance, sanitize, warn_if_unlit
 
 #: OpenCV's tone mappers take logs of luminance floored at this value (relative to white).
 OPENCV_LOG_FLOOR = 1e-4
@@ -115,12 +115,7 @@ def opencv_tonemap(
     lum = luminance(rgb)
     if white is None:
         white = estimate_white(lum)
-    if white <= 0.0:
-        warnings.warn(
-            "The radiance has no positive samples; the tone-mapped image is black.",
-            RuntimeWarning,
-            stacklevel=3,
-        )
+    if warn_if_unlit(white, stacklevel=3):
         return np.zeros(shape, dtype=np.float32)
     if channels == 1:
         rgb = np.repeat(rgb, 3, axis=2)

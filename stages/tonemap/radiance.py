@@ -118,6 +118,22 @@ def clean_luminance(lum: np.ndarray) -> np.ndarray:
     return np.maximum(lum, 0.0)
 
 
+def warn_if_unlit(white: float, stacklevel: int) -> bool:
+    """True (after a :class:`RuntimeWarning` at ``stacklevel`` above the caller) when the
+    white level is not positive: the radiance has no positive samples and the
+    tone-mapped image is black."""
+    import warnings
+
+    if white > 0.0:
+        return False
+    warnings.warn(
+        "The radiance has no positive samples; the tone-mapped image is black.",
+        RuntimeWarning,
+        stacklevel=stacklevel + 1,
+    )
+    return True
+
+
 def estimate_white(lum: np.ndarray) -> float:
     import cv2
 
