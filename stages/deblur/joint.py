@@ -21,7 +21,7 @@ smoothing is the same at every brightness (a relative, log-like prior suited to 
 Motion. The motion comes from :mod:`stages.deblur.layers` (a still background and
 rigidly translating layers, with occlusion, estimated from all the measuring bins over
 long baselines) and is kept fixed by default; the dense Gauss-Newton steps on ``u``
-(:func:`motion_step`) are taken only with ``update_motion=True`` (``make bench``,
+(:func:`stages.deblur.motion_steps.motion_step`) are taken only with ``update_motion=True`` (``make bench``,
 bench_layers, prints the velocities found and the share of the frame given the wrong
 layer). Coarse to fine:
 the motion is estimated on a grid of at most
@@ -69,7 +69,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .operator import sample_trajectories, static_rows
+from .operator import Layers, motion_layers, static_rows
 from .problem import (
     Observations,
     StackedOperator,
@@ -77,10 +77,10 @@ from .problem import (
     diag_normal,
     grad,
     grad_adjoint,
-    laplacian,
     pcg,
     product,
 )
+from .stream import StreamTerm, layer_motion, stream_term
 
 log = logging.getLogger(__name__)
 
@@ -151,24 +151,31 @@ def solve_image(
     callback: Callable[[int, np.ndarray], None] | None = None,
     free: np.ndarray | None = None,
     data_diag: np.ndarray | None = None,
+    ws: np.ndarray | None = None,
 ) -> np.ndarray:
     """One weighted least-squares image step (PCG), ``L`` of shape (H W, C).
 
     ``free`` (H W,) bool: the pixels re-estimated; the others keep their value in ``L``.
     ``data_diag``: the diagonal of the data terms' normal matrix for the preconditioner
     (computed from ``w``, ``wb`` when not given; any positive approximation will do).
+    ``ws``: the weights of the measuring stream's term ``obs.stream`` (when it has one).
     """
     h, wd, c = obs.shape
     n = h * wd
     AT = A.T  # one transposed view for all the products below
+    S = obs.stream
     if data_diag is None:
         data_diag = _diag_AtWA(A, w)
         if Ab is not None:
             data_diag = data_diag + Ab.diag_normal(wb)
+        if S is not None:
+            data_diag = data_diag + S.diag_normal(ws)
     diag = data_diag.copy()
     rhs = np.asarray(AT @ (w * obs.y).astype(np.float32), dtype=np.float64)
     if Ab is not None:
         rhs += Ab.mvt_weighted(wb, obs.yb)
+    if S is not None:
+        rhs += S.adjoint(ws * S.y)
     rhs += anchor_w * anchor
     # Precision a pixel at the reference level would have from its own exposure alone
     # (electrons / rate^2): the prior's weight does not shrink where the data are
@@ -192,6 +199,8 @@ def solve_image(
         smooth = grad_adjoint(sx * gx, sy * gy).reshape(n, c)
         if bins is not None:
             out += bins.result()
+        if S is not None:
+            out += S.adjoint(ws * S.apply(x))
         out += smooth
         out += anchor_w * x
         return out
@@ -205,131 +214,9 @@ def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
     return w / (1.0 + z2 / (k * k))
 
 
-def _motion_normal_terms(
-    obs: Observations,
-    L: np.ndarray,
-    vel: np.ndarray,
-    r: np.ndarray,
-    w: np.ndarray,
-    rb: np.ndarray | None,
-    wb: np.ndarray | None,
-    T: np.ndarray,
-    frame_s: float,
-    leakage: float,
-    n_time: int = 24,
-) -> tuple[np.ndarray, ...]:
-    """Per-pixel Gauss-Newton terms ``(Hxx, Hxy, Hyy, bx, by)`` of the misfit in ``u``.
-
-    The Jacobian of a pixel's model ``sum_s w_s L(x - u t_s)`` w.r.t. its velocity is
-    ``-sum_s w_s t_s grad L(x - u t_s)``, evaluated matrix-free on ``n_time`` samples of
-    the frame (and three per measuring bin); ``b = J^T W r``, ``H = J^T W J``.
-    """
-    h, wd, c = obs.shape
-    img = L.reshape(h, wd, c).astype(np.float32)
-    gys, gxs = np.gradient(img, axis=(0, 1))
-    hxx = np.zeros((h, wd))
-    hxy = np.zeros((h, wd))
-    hyy = np.zeros((h, wd))
-    bx = np.zeros((h, wd))
-    by = np.zeros((h, wd))
-
-    def accumulate(times, weights, rr, ww):
-        jx = np.zeros((h, wd, c))
-        jy = np.zeros((h, wd, c))
-        wt = weights * times.reshape(-1, 1, 1)
-        for ch in range(c):
-            sx = sample_trajectories(gxs[..., ch], vel, times)
-            sy = sample_trajectories(gys[..., ch], vel, times)
-            jx[..., ch] = -(wt * sx).sum(axis=0)
-            jy[..., ch] = -(wt * sy).sum(axis=0)
-        hxx[...] += (ww * jx * jx).sum(axis=2)
-        hxy[...] += (ww * jx * jy).sum(axis=2)
-        hyy[...] += (ww * jy * jy).sum(axis=2)
-        bx[...] += (ww * jx * rr).sum(axis=2)
-        by[...] += (ww * jy * rr).sum(axis=2)
-
-    dt = frame_s / n_time
-    times = (np.arange(n_time) + 0.5) * dt
-    weights = np.where(times.reshape(-1, 1, 1) < T[None], 1.0, leakage) * dt
-    accumulate(times, weights, r.reshape(h, wd, c), w.reshape(h, wd, c))
-    if rb is not None:
-        nb = len(obs.windows_b)
-        rb4 = rb.reshape(nb, h, wd, c)
-        wb4 = wb.reshape(nb, h, wd, c)
-        for b, wins in enumerate(obs.windows_b):
-            win = wins[0]
-            t0, t1, frac = float(win.start), float(win.end), float(win.weight)
-            k = 3
-            tb = t0 + (np.arange(k) + 0.5) * (t1 - t0) / k
-            wgt = np.full((k, 1, 1), frac * (t1 - t0) / k)
-            accumulate(tb, wgt, rb4[b], wb4[b])
-    return hxx, hxy, hyy, bx, by
-
-
-def motion_step_gradient(
-    obs: Observations,
-    L: np.ndarray,
-    vel: np.ndarray,
-    r: np.ndarray,
-    w: np.ndarray,
-    T: np.ndarray,
-    frame_s: float,
-    leakage: float,
+def moving_support(
+    A: sp.csr_matrix, Ab: StackedOperator | None = None, S: StreamTerm | None = None
 ) -> np.ndarray:
-    """Gradient of ``sum w r^2`` (VET image only) w.r.t. the velocity, ``(H, W, 2)``."""
-    _hxx, _hxy, _hyy, bx, by = _motion_normal_terms(
-        obs, L, vel, r, w, None, None, T, frame_s, leakage
-    )
-    return 2 * np.stack([bx, by], axis=-1)
-
-
-def motion_step(
-    obs: Observations,
-    L: np.ndarray,
-    vel: np.ndarray,
-    r: np.ndarray,
-    w: np.ndarray,
-    rb: np.ndarray | None,
-    wb: np.ndarray | None,
-    T: np.ndarray,
-    frame_s: float,
-    leakage: float,
-    opts: JointOptions,
-) -> np.ndarray:
-    """One damped Gauss-Newton step on the velocity field with Laplacian smoothness."""
-    import scipy.sparse.linalg as spla
-
-    h, wd, _c = obs.shape
-    hxx, hxy, hyy, bx, by = _motion_normal_terms(obs, L, vel, r, w, rb, wb, T, frame_s, leakage)
-    tr = hxx + hyy
-    scale = float(np.median(tr[tr > 0])) if np.any(tr > 0) else 1.0
-    alpha = opts.motion_alpha * scale
-    damp = 0.1 * tr + 1e-6 * scale
-    n = h * wd
-
-    def apply(x: np.ndarray) -> np.ndarray:
-        du = x[:n].reshape(h, wd)
-        dv = x[n:].reshape(h, wd)
-        ox = (hxx + damp) * du + hxy * dv - alpha * laplacian(du)
-        oy = hxy * du + (hyy + damp) * dv - alpha * laplacian(dv)
-        return np.concatenate([ox.ravel(), oy.ravel()])
-
-    rhs = -np.concatenate(
-        [
-            (bx - alpha * laplacian(vel[..., 0])).ravel(),
-            (by - alpha * laplacian(vel[..., 1])).ravel(),
-        ]
-    )
-    dg = np.concatenate([(hxx + damp + 4 * alpha).ravel(), (hyy + damp + 4 * alpha).ravel()])
-    op = spla.LinearOperator((2 * n, 2 * n), matvec=apply, dtype=np.float64)
-    pre = spla.LinearOperator((2 * n, 2 * n), matvec=lambda x: x / dg, dtype=np.float64)
-    sol, _ = spla.cg(op, rhs, M=pre, maxiter=60)
-    du = np.stack([sol[:n].reshape(h, wd), sol[n:].reshape(h, wd)], axis=-1)
-    du = np.clip(du, -opts.motion_step_max, opts.motion_step_max)
-    return (vel + du).astype(np.float32)
-
-
-def moving_support(A: sp.csr_matrix, Ab: StackedOperator | None = None) -> np.ndarray:
     """Pixels of ``L0`` that some moving integration path samples, bool (H W,).
 
     A row of the operator whose path does not move sees only its own pixel: the static
@@ -345,13 +232,15 @@ def moving_support(A: sp.csr_matrix, Ab: StackedOperator | None = None) -> np.nd
             # The stored values are positive weights: a column is reached by a moving
             # row exactly where this product is non-zero (no per-non-zero temporary).
             free |= np.asarray(M.T @ moving.astype(np.float32)) != 0
+    if S is not None:  # the stream's rows see their neighbours where their kernel spreads
+        free |= S.reached(S.moving())
     return free
 
 
 def fuse_still(
     obs: Observations,
     A: sp.csr_matrix,
-    Ab: StackedOperator,
+    Ab: StackedOperator | None,
     data_diag: np.ndarray,
     pixels: np.ndarray,
     fallback: np.ndarray,
@@ -361,14 +250,28 @@ def fuse_still(
     ``pixels`` (H W,) bool must be outside :func:`moving_support`: each such pixel's
     column of ``A`` and of every bin's operator holds only its own static row, so the
     noise-weighted least-squares value from the VET image and the measuring bins together
-    is ``(A^T w y + sum_b A_b^T w_b y_b) / diag(A^T w A + sum_b A_b^T w_b A_b)`` there.
-    ``fallback`` is kept where no datum has weight (clipped everywhere).
+    is ``(A^T w y + sum_b A_b^T w_b y_b) / diag(A^T w A + sum_b A_b^T w_b A_b)`` there
+    (with the stream's term ``obs.stream`` in place of the bins when the capture keeps
+    its stream: its row there is the identity). ``fallback`` is kept where no datum has
+    weight (clipped everywhere).
     """
     rhs = np.asarray(A.T @ (obs.w * obs.y).astype(np.float32), dtype=np.float64)
-    rhs += Ab.mvt_weighted(obs.wb, obs.yb)
+    if Ab is not None:
+        rhs += Ab.mvt_weighted(obs.wb, obs.yb)
+    if obs.stream is not None:
+        rhs += obs.stream.adjoint(obs.stream.w * obs.stream.y)
     d = data_diag[pixels]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(d > 0, rhs[pixels] / d, fallback)
+
+
+def build_stream(src: tuple, velocity: np.ndarray, layers: Layers | None = None) -> StreamTerm:
+    """The stream's term (:func:`stages.deblur.stream.stream_term`) for a motion:
+    ``layers`` when given, else the velocity field read as layers or as a dense field."""
+    measure, times, rig = src
+    if layers is None:
+        layers = motion_layers(velocity)
+    return stream_term(measure, times, rig, *layer_motion(layers, velocity))
 
 
 def _coarse_start(
@@ -384,6 +287,8 @@ def _coarse_start(
     h, wd, c = obs.shape
     h2, w2 = h // 2, wd // 2
     cobs, t_c = coarsen(obs, T, frame_s, leakage)
+    if obs.stream is not None:
+        cobs.stream = obs.stream.coarsen()
     L_c0 = restrict_mean(L_init.astype(np.float64))
     vel_c = (velocity[: 2 * h2 : 2, : 2 * w2 : 2] / 2.0).astype(np.float32)
     sat_c = block_sum(saturated.astype(np.int32)) > 0
@@ -424,6 +329,7 @@ def deblur_joint(
     truth_cb: Callable[[np.ndarray], float] | None = None,
     still: np.ndarray | None = None,
     report: dict | None = None,
+    layers: Layers | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint image and motion estimation (see the module docstring).
 
@@ -454,6 +360,10 @@ def deblur_joint(
         ``fused`` (the value of all their data, :func:`fuse_still`; see
         ``JointOptions.fuse_still``), ``hdr-static``, or ``none`` where every pixel
         moves (a global motion).
+    layers : Layers, optional
+        The motion as layers with their trajectories (a motion whose velocity changes
+        within the frame); ``velocity`` is then their mean velocity and the motion is not
+        updated.
 
     Returns
     -------
@@ -489,7 +399,7 @@ def deblur_joint(
     sat = np.broadcast_to(saturated.reshape(n, 1), (n, c))
     anchor_w = np.where(sat, 1.0 / (0.01 * np.maximum(anchor, 1e-30)) ** 2, 0.0)
     vel = velocity.astype(np.float32)
-    w, wb = obs.w, obs.wb
+    w, wb, ws = obs.w, obs.wb, None
     # Noise-equivalent floor (as hdr-static's): one electron over the pixel's exposure.
     expo = np.maximum(T, leakage * frame_s + (1 - leakage) * T).reshape(n, 1)
     floor = np.broadcast_to(1.0 / expo, (n, c))
@@ -498,18 +408,26 @@ def deblur_joint(
     for it in range(total):
         t0 = time.perf_counter()
         if built_for is None or not np.array_equal(built_for, vel):
-            A, Ab = build_operators(obs, vel, step_px=opts.step_px, subframe_s=subframe_s)
-            free = moving_support(A, Ab)
+            A, Ab = build_operators(
+                obs, vel, step_px=opts.step_px, subframe_s=subframe_s, layers=layers
+            )
+            if obs.stream_src is not None:
+                obs.stream = build_stream(obs.stream_src, vel, layers)
+            S = obs.stream
+            free = moving_support(A, Ab, S)
             built_for = vel.copy()
             # Preconditioner from the noise weights (the robust reweighting only lowers
             # them; the preconditioner need not follow exactly).
             data_diag = _diag_AtWA(A, obs.w)
             if Ab is not None:
                 data_diag += Ab.diag_normal(obs.wb)
+            if S is not None:
+                data_diag += S.diag_normal(S.w)
+                ws = S.w
             if start is not None:
                 L = np.where(free[:, None], np.maximum(start, floor), L)
                 start = None
-            fusing = Ab is not None and (
+            fusing = (Ab is not None or S is not None) and (
                 opts.fuse_still if opts.fuse_still is not None else bool(free.any())
             )
             fuse = ~free & ~saturated.reshape(n) if fusing else None
@@ -549,6 +467,7 @@ def deblur_joint(
             callback=cb,
             free=free,
             data_diag=data_diag,
+            ws=ws,
         )
         iters_done += cg_iters
         L = np.where(free[:, None], np.maximum(L, floor), L)
@@ -557,8 +476,12 @@ def deblur_joint(
         w = _robust(r, obs.w, opts.cauchy_k)
         if rb is not None:
             wb = _robust(rb, obs.wb, opts.cauchy_k)
+        if S is not None:
+            ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
         ts = time.perf_counter()
         if not last and opts.update_motion:
+            from .motion_steps import motion_step
+
             vel = motion_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts)
             if still is not None:
                 vel[still] = 0.0

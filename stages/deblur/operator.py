@@ -78,6 +78,31 @@ class Layers:
     velocity: np.ndarray
     front: list[int]
     background: int
+    trajectory: tuple[np.ndarray, np.ndarray] | None = None
+
+    def displacement(self, t: np.ndarray | float) -> np.ndarray:
+        """Each layer's displacement at time(s) ``t``: (K, 2) for a scalar ``t``, else
+        (K, ..., 2) px. ``velocity * t`` unless a ``trajectory`` ``(times (M,), disp
+        (K, M, 2))`` is given, which is interpolated linearly (held past its ends)."""
+        t = np.asarray(t, np.float64)
+        if self.trajectory is None:
+            return self.velocity.reshape(-1, *([1] * t.ndim), 2) * t[..., None]
+        times, disp = self.trajectory
+        out = np.empty((disp.shape[0], *t.shape, 2))
+        for k in range(disp.shape[0]):
+            for a in range(2):
+                out[k, ..., a] = np.interp(t, times, disp[k, :, a])
+        return out
+
+    def max_speed(self) -> float:
+        """Fastest speed of any layer at any time, px/s."""
+        if self.trajectory is None:
+            return float(np.hypot(self.velocity[:, 0], self.velocity[:, 1]).max())
+        times, disp = self.trajectory
+        if len(times) < 2:
+            return 0.0
+        v = np.diff(disp, axis=1) / np.maximum(np.diff(times), 1e-12)[None, :, None]
+        return float(np.hypot(v[..., 0], v[..., 1]).max())
 
 
 def motion_layers(velocity: np.ndarray, max_layers: int = MAX_LAYERS) -> Layers | None:
@@ -181,9 +206,10 @@ def blur_matrix(
     vel = velocity.reshape(n, 2).astype(np.float64)
     if isinstance(layers, str):
         layers = motion_layers(velocity)
-    if layers is not None and len(layers.velocity) > 1:
+    by_layer = layers is not None and (len(layers.velocity) > 1 or layers.trajectory is not None)
+    if by_layer:
         # Samples along the fastest layer's path: any layer may cover the pixel.
-        speed = np.full(n, float(np.hypot(layers.velocity[:, 0], layers.velocity[:, 1]).max()))
+        speed = np.full(n, layers.max_speed())
     else:
         speed = np.hypot(vel[:, 0], vel[:, 1])
     wins = []
@@ -221,7 +247,7 @@ def blur_matrix(
             t = a[pix] + (k + 0.5) * dt
             weight = wt[pix] * dt
             py, px = np.divmod(pix, w)
-            if layers is not None and len(layers.velocity) > 1:
+            if by_layer:
                 x, y = _layered_positions(layers, px, py, t, h, w)
             else:
                 x = px - vel[pix, 0] * t
@@ -311,14 +337,14 @@ def _layered_positions(
     layers: Layers, px: np.ndarray, py: np.ndarray, t: np.ndarray, h: int, w: int
 ):
     """Scene positions seen by pixels ``(px, py)`` at times ``t``: front-most covering layer."""
-    vb = layers.velocity[layers.background]
-    x = px - vb[0] * t
-    y = py - vb[1] * t
+    disp = layers.displacement(t)  # (K, *t.shape, 2)
+    db = disp[layers.background]
+    x = px - db[..., 0]
+    y = py - db[..., 1]
     done = np.zeros(px.shape, bool)
     for k in layers.front:
-        vx, vy = layers.velocity[k]
-        xk = px - vx * t
-        yk = py - vy * t
+        xk = px - disp[k][..., 0]
+        yk = py - disp[k][..., 1]
         ix = np.floor(xk + 0.5).astype(np.int64)
         iy = np.floor(yk + 0.5).astype(np.int64)
         inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)

@@ -149,7 +149,7 @@ def deblur_paper(
 
     Returns ``L0`` (H, W, C) electrons/s and the velocity (H, W, 2) px/s.
     """
-    from .joint import motion_step_gradient
+    from .motion_steps import motion_step_gradient
 
     opts = opts or PaperOptions()
     h, w, c = obs.shape

@@ -18,6 +18,7 @@ import scipy.sparse as sp
 from ..formats.capture import Capture
 from ..physics import bin_may_clip
 from .operator import Window, blur_matrix, motion_layers, vet_windows
+from .stream import StreamTerm
 
 
 @dataclass
@@ -37,6 +38,13 @@ class Observations:
         Their inverse variances; 0 where a subframe of the bin clipped.
     windows_b : list of list of Window
         Exposure windows of each bin (light fraction as weight).
+    stream_src : tuple or None
+        ``(measure (K, H, W, C) DN, times (K, 2) s, rig)``: a capture's whole measuring
+        stream, observed through :mod:`stages.deblur.stream` (then ``yb`` is None: the
+        subframes replace the bins, which would count the same light twice).
+    stream : StreamTerm or None
+        The stream's term for the current motion (built from ``stream_src``, or given:
+        a coarse level's).
     """
 
     shape: tuple[int, int, int]
@@ -46,10 +54,25 @@ class Observations:
     yb: np.ndarray | None
     wb: np.ndarray | None
     windows_b: list[list[Window]]
+    stream_src: tuple | None = None
+    stream: StreamTerm | None = None
+
+
+def has_stream(cap: Capture) -> bool:
+    """Whether the capture keeps its measuring stream: two or more measuring images,
+    each one subframe long."""
+    if cap.measure is None or cap.measure_times is None or cap.measure.shape[0] < 2:
+        return False
+    dur = np.diff(np.asarray(cap.measure_times, np.float64), axis=1)[:, 0]
+    return bool(np.all(np.rint(dur / cap.rig.subframe_s) <= 1))
 
 
 def observations(cap: Capture, use_measure: bool = True) -> Observations:
-    """Turn a capture into electrons and noise weights (see :class:`Observations`)."""
+    """Turn a capture into electrons and noise weights (see :class:`Observations`).
+
+    A capture with its whole measuring stream (:func:`has_stream`) is observed through
+    the stream's term (``stream_src``); one with time bins through the bins.
+    """
     rig = cap.rig
     g = rig.gain_dn_per_e
     h, w, c = cap.I.shape
@@ -65,6 +88,17 @@ def observations(cap: Capture, use_measure: bool = True) -> Observations:
     wins = vet_windows(cap.T, tf, rig.subframe_s, rig.n_subframes, rig.leakage)
     yb = wb = None
     wins_b: list[list[Window]] = []
+    if use_measure and has_stream(cap):
+        return Observations(
+            (h, w, c),
+            y.reshape(h * w, c),
+            wt.reshape(h * w, c),
+            wins,
+            None,
+            None,
+            [],
+            stream_src=(cap.measure, cap.measure_times, rig),
+        )
     if (
         use_measure
         and cap.measure is not None
@@ -199,14 +233,18 @@ def build_operators(
     step_px: float = 1.0,
     step_px_bins: float = 1.5,
     subframe_s: float | None = None,
+    layers=None,
 ) -> tuple[sp.csr_matrix, StackedOperator | None]:
-    """Blur operators of the VET image and of the measuring bins for a motion."""
+    """Blur operators of the VET image and of the measuring bins for a motion
+    (``layers``: the motion as :class:`~stages.deblur.operator.Layers` when the caller
+    has them, e.g. with trajectories; else read from ``velocity``)."""
     from concurrent.futures import ThreadPoolExecutor
 
     jobs = [(obs.windows, step_px)] + [
         (wins, step_px_bins) for wins in (obs.windows_b if obs.yb is not None else [])
     ]
-    layers = motion_layers(velocity)  # once for all the operators of this motion
+    if layers is None:
+        layers = motion_layers(velocity)  # once for all the operators of this motion
     # Two threads: the assembly is numpy work that mostly releases the GIL.
     with ThreadPoolExecutor(max_workers=2) as pool:
         mats = list(
