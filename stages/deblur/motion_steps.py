@@ -4,6 +4,8 @@ evaluated matrix-free along the integration paths."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from .operator import sample_trajectories
