@@ -38,7 +38,7 @@ from .errors import DeviceError, VetError
 from .formats.capture import Capture, provenance_entry, write_capture
 from .formats.io import atomic_output
 from .physics import CellMap, ClosureController
-from .simulate import measure_bin_edges
+from .simulate import add_subframe, measure_store
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ def _jsonable(o: Any) -> Any:
 def capture_frame(
     rig: Any,
     folder: str | Path,
-    measure_bins: int = 8,
+    measure_bins: int | None = None,
     raw_stream: bool = True,
     fmt: str = "exr",
     progress: Callable[[int, int], None] | None = None,
@@ -90,8 +90,9 @@ def capture_frame(
         An open rig (emulated or hardware).
     folder : path
         Capture folder; created if missing (its parent must exist).
-    measure_bins : int
-        Time bins of measuring images stored in the capture file.
+    measure_bins : int, optional
+        Time bins of measuring images stored in the capture file; None (the default):
+        every subframe (:func:`stages.simulate.measure_store`).
     raw_stream : bool
         Keep every measuring subframe in ``measure_raw.npy``.
     fmt : {"exr", "npz"}
@@ -148,8 +149,7 @@ def capture_frame(
             rig.vet.start_exposure()  # a host-triggered VET camera starts with the frame
         clog.info("frame 0 started at device subframe %d", s0)
         nch = len(rig.channels)
-        edges = measure_bin_edges(k_sub, measure_bins) if measure_bins > 0 else None
-        measure = np.zeros((len(edges) - 1, h, w, nch), np.float32) if edges is not None else None
+        edges, measure = measure_store(k_sub, measure_bins, (h, w, nch))
         bin_of = (
             np.searchsorted(edges, np.arange(k_sub), side="right") - 1
             if edges is not None
@@ -168,7 +168,7 @@ def capture_frame(
 
         def record_subframe(kk: int, frame_data: np.ndarray) -> None:
             if measure is not None:
-                np.add(measure[bin_of[kk]], frame_data, out=measure[bin_of[kk]], casting="unsafe")
+                add_subframe(measure, bin_of[kk], frame_data)
             if raw is not None:
                 raw[kk] = frame_data  # integer DN in [-black level, 4095]: exact in int16
 

@@ -129,15 +129,22 @@ def _rate_from_measure(
     cap: Capture,
 ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray | None]:
     """Rate (e-/s at the VET sensor) from the first measuring bin (H, W, C), where it is
-    valid (H, W), and its noise standard deviation (H, W, C), e-/s."""
+    valid (H, W), and its noise standard deviation (H, W, C), e-/s. Of more than eight
+    measuring images (a capture's whole stream), the first eighth, summed, is the bin."""
     if cap.measure is None or cap.measure_times is None:
         return None, np.zeros(cap.shape, bool), None
     rig = cap.rig
     g = np.float32(rig.gain_dn_per_e)
-    t0, t1 = (float(v) for v in cap.measure_times[0])
+    # A stream's first eighth of subframes, summed, as an 8-bin capture's first bin.
+    n0 = 1
+    if cap.measure.dtype != np.float32 or cap.measure.shape[0] > 8:
+        from .simulate import measure_bin_edges
+
+        n0 = int(measure_bin_edges(cap.measure.shape[0], 8)[1])
+    t0, t1 = float(cap.measure_times[0][0]), float(cap.measure_times[n0 - 1][1])
     dur = t1 - t0
     n_sub = max(1, int(round(dur / rig.subframe_s)))
-    m0 = cap.measure[0]
+    m0 = cap.measure[:n0].astype(np.float32).sum(axis=0)
     rate = (m0 / g - np.float32(rig.dark_current_e_s * dur)) / np.float32(
         dur * rig.measure_fraction
     )

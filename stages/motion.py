@@ -22,6 +22,21 @@ Specs
     back along the field, so there is no occlusion: where two paths meet, both show. A
     field of another size with the scene's aspect ratio is resampled to the scene, its
     velocities scaled with it (so ``--size`` works); another aspect ratio is an error.
+
+Motions whose velocity changes within the frame (Uda et al. 2016, Eq. 8: ``D(x, t)``
+any function of time) are rigid layers on the t = 0 grid (a label per pixel, layer 0
+the background) each moving along its own path ``D_k(t)`` (``D_k(0) = 0``); the front
+layer occludes. :meth:`TrajectoryMotion.trajectory` samples the paths for a capture's
+truth (``truth_trajectory`` and the ``truth_layers`` layer of a capture file):
+
+``shake:AMP[,SEED]``
+    Camera shake: the whole image follows a smooth random path, a sum of three sinusoids
+    per axis (1.3, 2.9 and 4.7 Hz, seeded phases) scaled so that the path's RMS distance
+    from its start over one second is ``AMP`` pixels.
+``oscillate:X,Y,W,H:AX,AY[,HZ]``
+    The rectangle ``[X, X+W) x [Y, Y+H)`` swings over the still rest,
+    ``D(t) = (AX, AY) sin(2 pi HZ t)`` (HZ default 1: one swing per second), occluding
+    it as ``object:`` does: its velocity reverses within the frame.
 """
 
 from __future__ import annotations
@@ -240,6 +255,136 @@ class DenseField(Motion):
         return self._on(shape)[0].copy()
 
 
+#: Shake's frequencies (Hz) and relative amplitudes per axis (hand tremor band).
+SHAKE_HZ = (1.3, 2.9, 4.7)
+SHAKE_WEIGHTS = (1.0, 0.6, 0.35)
+
+
+class TrajectoryMotion(Motion):
+    """Base of the layered motions with paths: subclasses give the label map and the
+    moving layer's displacement ``offset(t) -> (dx, dy)``."""
+
+    def labels(self, shape: tuple[int, int]) -> np.ndarray:
+        """Layer of each pixel at t = 0, (H, W) int32 (0: background)."""
+        raise NotImplementedError
+
+    def offsets(self, t: np.ndarray) -> np.ndarray:
+        """Each layer's displacement at times ``t`` (M,): (K, M, 2) px."""
+        raise NotImplementedError
+
+    def trajectory(
+        self, shape: tuple[int, int], times: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(labels (H, W) int32, displacement (K, M, 2) px)`` at ``times`` (M,) s."""
+        return self.labels(shape), self.offsets(np.asarray(times, np.float64))
+
+    def velocity(self, shape: tuple[int, int]) -> np.ndarray:
+        """Velocity at t = 0 (H, W, 2) px/s (a central difference of the paths)."""
+        dt = 1e-4
+        v = (self.offsets(np.array([dt]))[:, 0] - self.offsets(np.array([-dt]))[:, 0]) / (2 * dt)
+        return v[self.labels(shape)].astype(np.float32)
+
+    @property
+    def is_still(self) -> bool:
+        return False
+
+
+@dataclass
+class Shake(TrajectoryMotion):
+    amp: float
+    seed: int = 0
+
+    @property
+    def spec(self) -> str:  # type: ignore[override]
+        return f"shake:{self.amp:g},{self.seed}"
+
+    @property
+    def is_still(self) -> bool:
+        return self.amp == 0
+
+    def _path(self, t: np.ndarray) -> np.ndarray:
+        rng = np.random.default_rng(self.seed)
+        phases = rng.uniform(0, 2 * math.pi, (2, len(SHAKE_HZ)))
+        out = np.zeros((len(t), 2))
+        for a in range(2):
+            for f, wgt, ph in zip(SHAKE_HZ, SHAKE_WEIGHTS, phases[a], strict=True):
+                out[:, a] += wgt * (np.sin(2 * math.pi * f * t + ph) - math.sin(ph))
+        # Scale to the stated RMS distance from the start over one second.
+        grid = np.linspace(0, 1, 201)
+        ref = np.zeros((len(grid), 2))
+        for a in range(2):
+            for f, wgt, ph in zip(SHAKE_HZ, SHAKE_WEIGHTS, phases[a], strict=True):
+                ref[:, a] += wgt * (np.sin(2 * math.pi * f * grid + ph) - math.sin(ph))
+        rms = float(np.sqrt(np.mean(np.sum(ref**2, axis=1)))) or 1.0
+        return out * (self.amp / rms)
+
+    def labels(self, shape: tuple[int, int]) -> np.ndarray:
+        return np.zeros(shape, np.int32)
+
+    def offsets(self, t: np.ndarray) -> np.ndarray:
+        return self._path(np.atleast_1d(t))[None]
+
+    def render(self, scene: np.ndarray, t: float) -> np.ndarray:
+        import cv2
+
+        if self.is_still:
+            return scene
+        h, w = scene.shape[:2]
+        dx, dy = self._path(np.array([t]))[0]
+        m = np.array([[1, 0, _reflect_period(dx, w)], [0, 1, _reflect_period(dy, h)]])
+        return _warp(scene, m, cv2.BORDER_REFLECT)
+
+
+@dataclass
+class Oscillate(TrajectoryMotion):
+    x: int
+    y: int
+    w: int
+    h: int
+    ax: float
+    ay: float
+    hz: float = 1.0
+
+    @property
+    def spec(self) -> str:  # type: ignore[override]
+        return f"oscillate:{self.x},{self.y},{self.w},{self.h}:{self.ax:g},{self.ay:g},{self.hz:g}"
+
+    @property
+    def is_still(self) -> bool:
+        return (self.ax == 0 and self.ay == 0) or self.hz == 0
+
+    def labels(self, shape: tuple[int, int]) -> np.ndarray:
+        m = np.zeros(shape, np.int32)
+        m[max(self.y, 0) : self.y + self.h, max(self.x, 0) : self.x + self.w] = 1
+        return m
+
+    def offsets(self, t: np.ndarray) -> np.ndarray:
+        s = np.sin(2 * math.pi * self.hz * np.atleast_1d(t))
+        out = np.zeros((2, len(s), 2))
+        out[1, :, 0] = self.ax * s
+        out[1, :, 1] = self.ay * s
+        return out
+
+    def render(self, scene: np.ndarray, t: float) -> np.ndarray:
+        import cv2
+
+        if self.is_still:
+            return scene
+        dx, dy = self.offsets(np.array([t]))[1, 0]
+        m = np.array([[1, 0, dx], [0, 1, dy]])
+        obj = _warp(scene, m, cv2.BORDER_CONSTANT)
+        mask = self.labels(scene.shape[:2]).astype(np.float32)
+        alpha = _warp(mask, m, cv2.BORDER_CONSTANT)[..., None]
+        return scene + alpha * (obj - scene)
+
+
+def trajectory_times(frame_s: float, subframe_s: float, n_subframes: int) -> np.ndarray:
+    """The times a capture's true trajectory is sampled at: 0, each subframe's mid-time
+    (where the simulator renders), and the frame's end, seconds."""
+    mids = (np.arange(n_subframes) + 0.5) * subframe_s
+    return np.concatenate([[0.0], mids, [frame_s]])
+
+
 def load_motion_field(path: str) -> DenseField:
     """Read a motion file (``kind: motion``) as a :class:`DenseField`; InputError if it
     is not one or holds non-finite velocities."""
@@ -268,6 +413,8 @@ FORMS = {
     "translate": "translate:VX,VY",
     "object": "object:X,Y,W,H:VX,VY",
     "rotate": "rotate:DEG_PER_S[,CX,CY]",
+    "shake": "shake:AMP[,SEED]",
+    "oscillate": "oscillate:X,Y,W,H:AX,AY[,HZ]",
 }
 
 
@@ -314,11 +461,31 @@ def parse_motion(spec: str | None) -> Motion:
             return Rotate(_floats(rest, 1, spec)[0])
         d, cx, cy = _floats(rest, 3, spec)
         return Rotate(d, cx, cy)
+    if kind == "shake":
+        parts = rest.split(",")
+        amp, seed = _floats(rest, 2, spec) if len(parts) == 2 else (_floats(rest, 1, spec)[0], 0)
+        if amp < 0 or seed != int(seed) or seed < 0:
+            raise InputError(
+                f"invalid motion {spec!r}: the amplitude must be >= 0 and the seed a whole number"
+            )
+        return Shake(amp, int(seed))
+    if kind == "oscillate":
+        rect, sep, amp = rest.partition(":")
+        x, y, w, h = _floats(rect, 4, spec)
+        parts = amp.split(",")
+        vals = _floats(amp, 3, spec) if len(parts) == 3 else [*_floats(amp, 2, spec), 1.0]
+        if not sep or w <= 0 or h <= 0 or vals[2] < 0:
+            raise InputError(
+                f"invalid motion {spec!r}: use oscillate:X,Y,W,H:AX,AY[,HZ] with a positive "
+                "width and height and HZ >= 0"
+            )
+        return Oscillate(int(x), int(y), int(w), int(h), *vals)
     if kind == "field":
         if not rest:
             raise InputError(f"invalid motion {spec!r}: field:PATH needs a motion file")
         return load_motion_field(rest)
     raise InputError(
         f"invalid motion {spec!r}: use none, translate:VX,VY, object:X,Y,W,H:VX,VY,"
-        " rotate:DEG_PER_S[,CX,CY] or field:PATH"
+        " rotate:DEG_PER_S[,CX,CY], shake:AMP[,SEED], oscillate:X,Y,W,H:AX,AY[,HZ]"
+        " or field:PATH"
     )

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from .formats.capture import Capture, provenance_entry
-from .motion import Motion
+from .motion import Motion, TrajectoryMotion, trajectory_times
 from .physics import (
     CellMap,
     ClosureController,
@@ -67,7 +67,7 @@ def simulate(
     rig: RigParams,
     seed: int = 0,
     methods: Sequence[str] = ("vet",),
-    measure_bins: int = 8,
+    measure_bins: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     scale: float | None = None,
     reach_subframes: float = 1.0,
@@ -88,8 +88,9 @@ def simulate(
         whichever other methods are rendered beside it.
     methods : sequence of str
         Any of :data:`METHODS`.
-    measure_bins : int
-        Number of time bins of measuring images stored in the VET capture (0: none).
+    measure_bins : int, optional
+        Time bins of measuring images stored in the VET capture (0: none); None (the
+        default) keeps every subframe, as whole DN in int16 (:func:`measure_store`).
     progress : callable, optional
         Called as ``progress(done, total)`` after each subframe.
     scale : float, optional
@@ -131,8 +132,7 @@ def simulate(
     vet_e = np.zeros(shape, np.float32) if "vet" in want else None
     full_e = np.zeros(shape, np.float32) if want & {"long", "adaptive-attenuation"} else None
     short_e = None
-    edges = measure_bin_edges(k_sub, measure_bins) if measure_bins > 0 else None
-    measure = np.zeros((len(edges) - 1, *shape), np.float32) if edges is not None and ctrl else None
+    edges, measure = measure_store(k_sub, measure_bins, shape) if ctrl else (None, None)
     bin_of = (
         np.searchsorted(edges, np.arange(k_sub), side="right") - 1 if edges is not None else None
     )
@@ -164,7 +164,7 @@ def simulate(
                 trans[..., 0] = np.where(ctrl.open_pixels(j), np.float32(1.0), eps)
             vet_e += step_e * trans
             if measure is not None:
-                measure[bin_of[j]] += frame_dn
+                add_subframe(measure, bin_of[j], frame_dn)
             ctrl.step(frame_dn, j)
         if full_e is not None:
             full_e += step_e
@@ -188,6 +188,11 @@ def simulate(
     }
     truth = radiance.astype(np.float32)
     common = dict(channels=list(scene.channels), rig=rig, truth=truth, truth_motion=truth_motion)
+    if isinstance(motion, TrajectoryMotion):
+        times = trajectory_times(tf, tau, k_sub)
+        labels, disp = motion.trajectory((h, w), times)
+        common["truth_layers"] = labels
+        base_meta["truth_trajectory"] = {"times": times.tolist(), "disp": disp.tolist()}
 
     def meta_for(method: str, integration_s: float, leakage_applies: bool) -> dict[str, Any]:
         m = dict(
@@ -238,6 +243,31 @@ def simulate(
             **common,
         )
     return {m: out[m] for m in methods}
+
+
+def measure_store(
+    n_subframes: int, measure_bins: int | None, shape: tuple[int, ...]
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Bin edges and the zeroed array the measuring images gather in (None, None for
+    ``measure_bins`` 0): ``measure_bins`` None keeps every subframe, (K, *shape) int16
+    (a subframe's whole DN, ``-black_level_dn .. max_dn``, fit exactly); N bins sum
+    subframes in float32."""
+    if measure_bins == 0:
+        return None, None
+    if measure_bins is None:
+        measure_bins = n_subframes
+    edges = measure_bin_edges(n_subframes, measure_bins)
+    one_each = bool(np.all(np.diff(edges) == 1))
+    dtype = np.int16 if one_each else np.float32
+    return edges, np.zeros((len(edges) - 1, *shape), dtype)
+
+
+def add_subframe(measure: np.ndarray, b: int, frame_dn: np.ndarray) -> None:
+    """Gather one subframe (whole DN, float) into measuring image ``b``."""
+    if measure.dtype == np.int16:
+        np.rint(frame_dn, out=measure[b], casting="unsafe")
+    else:
+        measure[b] += frame_dn
 
 
 def attenuation_from_previous_frame(

@@ -7,7 +7,7 @@ import click
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides
 from .outputs import CAPTURE_FOLDER_FILES, Output, check_outputs, force_option
-from .params import MOTION, SEED, SIZE, positive
+from .params import MOTION, SEED, SIZE, MeasureBins, positive
 
 
 @click.command(
@@ -54,7 +54,13 @@ Example:
     metavar="SUBFRAME",
     help="[sim] Cut the LCoS link at this device subframe.",
 )
-@click.option("--measure-bins", type=click.IntRange(0, 1000), default=8, show_default=True)
+@click.option(
+    "--measure-bins",
+    type=MeasureBins(),
+    default="all",
+    show_default=True,
+    help="Measuring images stored in the capture: all (every subframe) or N time bins.",
+)
 @click.option(
     "--raw-stream/--no-raw-stream",
     default=True,
@@ -79,7 +85,7 @@ def cli(
     link_bps: float | None,
     link_fault_rate: float,
     disconnect_at: int | None,
-    measure_bins: int,
+    measure_bins: int | None,
     raw_stream: bool,
     fmt: str,
     force: bool,

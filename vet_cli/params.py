@@ -85,3 +85,26 @@ SIZE = Size()
 SEED = click.IntRange(min=0)
 #: Exposure shifts in stops (stages.tonemap's range).
 STOPS = FiniteFloatRange(-64, 64)
+
+
+class MeasureBins(click.ParamType):
+    """``all`` (every measuring subframe, the default: returned as None) or a number of
+    time bins from 0 (none) to 1000."""
+
+    name = "all|N"
+
+    def get_metavar(self, *args: Any, **kwargs: Any) -> str:
+        return "all|N"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None):
+        if value is None or (isinstance(value, str) and value.strip().lower() == "all"):
+            return None
+        try:
+            n = int(str(value).strip())
+        except ValueError:
+            self.fail(
+                f"{value!r} is not 'all' or a whole number of bins from 0 to 1000", param, ctx
+            )
+        if not 0 <= n <= 1000:
+            self.fail(f"{n} bins: allowed 'all' or 0 to 1000", param, ctx)
+        return n

@@ -7,7 +7,7 @@ import click
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides, scale_choice, scale_options
 from .outputs import Output, check_outputs, force_option
-from .params import MOTION, SEED, SIZE
+from .params import MOTION, SEED, SIZE, MeasureBins
 
 BUILTINS = "interior, chart"
 METHODS = ["vet", "long", "short", "adaptive-attenuation"]
@@ -50,10 +50,11 @@ Example:
 )
 @click.option(
     "--measure-bins",
-    type=click.IntRange(0, 1000),
-    default=8,
+    type=MeasureBins(),
+    default="all",
     show_default=True,
-    help="Time bins of measuring images stored in the capture (0: none).",
+    help="Measuring images stored in the capture: all (every subframe, compact) or N "
+    "time bins (0: none).",
 )
 @scale_options
 @rig_options
@@ -67,7 +68,7 @@ def cli(
     seed: int,
     size: tuple[int, int] | None,
     method: str,
-    measure_bins: int,
+    measure_bins: int | None,
     force: bool,
     **kwargs,
 ) -> None:

@@ -83,6 +83,10 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
         raise InputError(
             f"unknown motion initialisation {motion_init!r}; choose from {', '.join(MOTION_INITS)}"
         )
+    from .problem import has_stream
+
+    if has_stream(cap):  # the motion estimators work on time bins of the stream
+        cap = _binned_capture(cap)
     if motion_init == "layers":
         from .layers import estimate_layers
 
@@ -101,6 +105,54 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
         return np.zeros((*cap.shape, 2), np.float32), "dense"
     vel, _conf = estimate_velocity(cap, motion_init)
     return suppress_small_motion(vel), "dense"
+
+
+def _binned_capture(cap: Capture, n_bins: int = 8) -> Capture:
+    """The capture with its stream summed into ``n_bins`` time bins."""
+    from ..simulate import measure_bin_edges
+
+    edges = measure_bin_edges(cap.measure.shape[0], n_bins)
+    bins = np.stack(
+        [
+            cap.measure[a:b].astype(np.float32).sum(axis=0)
+            for a, b in zip(edges[:-1], edges[1:], strict=True)
+        ]
+    )
+    mt = np.stack([cap.measure_times[edges[:-1], 0], cap.measure_times[edges[1:] - 1, 1]], axis=1)
+    return replace(cap, measure=bins, measure_times=mt)
+
+
+def changing_motion(cap: Capture):
+    """Layers along measured paths when the capture keeps its stream and its motion
+    changes within the frame (:mod:`stages.deblur.layers.paths`), else None."""
+    from .problem import has_stream
+
+    if not has_stream(cap):
+        return None
+    from .layers.paths import path_layers, tile_paths
+
+    tp = tile_paths(cap.measure, cap.measure_times, cap.rig)
+    if not tp.changing:
+        return None
+    return path_layers(tp, float(cap.meta.get("integration_s", cap.rig.frame_s)))
+
+
+def truth_layers(cap: Capture):
+    """The simulator's true motion along paths as :class:`~stages.deblur.operator.Layers`
+    with their trajectories, or None when the capture has none (constant velocities)."""
+    tt = cap.meta.get("truth_trajectory")
+    if cap.truth_layers is None or not isinstance(tt, dict):
+        return None
+    from .operator import Layers
+
+    times = np.asarray(tt["times"], np.float64)
+    disp = np.asarray(tt["disp"], np.float64)
+    label = cap.truth_layers.astype(np.int32)
+    counts = np.bincount(label.ravel(), minlength=disp.shape[0])
+    bg = int(np.argmax(counts))
+    front = [int(k) for k in np.argsort(counts, kind="stable") if k != bg and counts[k] > 0]
+    span = max(float(times[-1]), 1e-12)
+    return Layers(label, disp[:, -1] / span, front, bg, trajectory=(times, disp))
 
 
 def deblur_mask(static_mask: np.ndarray, L: np.ndarray, L_init: np.ndarray) -> np.ndarray:
@@ -217,12 +269,21 @@ def deblur(
     t_start = time.perf_counter()
     static = hdr_static(cap)
     L_init = output_to_rate(cap, static.radiance).astype(np.float32)
+    layers = None
+    if motion is None and motion_init == "truth":
+        layers = truth_layers(cap)
     if motion is not None:
         if motion.shape != (*cap.shape, 2):
             raise InputError(f"the given motion is {motion.shape}, not {(*cap.shape, 2)}")
         vel0 = motion.astype(np.float32)
     else:
-        vel0, motion_model = start_motion(cap, motion_init)
+        if motion_init == "layers":
+            layers = changing_motion(cap)
+        if layers is not None and motion_init == "layers":
+            vel0 = layers.velocity[layers.label].astype(np.float32)
+            motion_model = "layer-paths"
+        else:
+            vel0, motion_model = start_motion(cap, motion_init)
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
     # Pixels saturated in the VET image and in the first bin: only a lower bound is known.
@@ -271,6 +332,7 @@ def deblur(
             truth_cb=truth_cb,
             still=~np.any(vel0 != 0, axis=2) if motion_model != "truth" else None,
             report=report,
+            layers=layers,
         )
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}

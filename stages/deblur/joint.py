@@ -275,7 +275,17 @@ def build_stream(src: tuple, velocity: np.ndarray, layers: Layers | None = None)
 
 
 def _coarse_start(
-    obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts, progress=None
+    obs,
+    L_init,
+    velocity,
+    T,
+    frame_s,
+    subframe_s,
+    leakage,
+    saturated,
+    opts,
+    progress=None,
+    layers=None,
 ):
     """Start of the fine solve: hdr-static times the coarse level's correction (H W, C).
 
@@ -291,6 +301,16 @@ def _coarse_start(
         cobs.stream = obs.stream.coarsen()
     L_c0 = restrict_mean(L_init.astype(np.float64))
     vel_c = (velocity[: 2 * h2 : 2, : 2 * w2 : 2] / 2.0).astype(np.float32)
+    layers_c = None
+    if layers is not None:
+        traj = layers.trajectory
+        layers_c = Layers(
+            layers.label[: 2 * h2 : 2, : 2 * w2 : 2],
+            layers.velocity / 2.0,
+            layers.front,
+            layers.background,
+            trajectory=None if traj is None else (traj[0], traj[1] / 2.0),
+        )
     sat_c = block_sum(saturated.astype(np.int32)) > 0
     # The coarse level only starts the moving pixels: still ones are fused, if asked, at
     # full resolution.
@@ -306,6 +326,7 @@ def _coarse_start(
         sat_c,
         copts,
         progress=progress,
+        layers=layers_c,
     )
     # Multiplicative (log-domain) correction: an additive one, interpolated across a
     # bright edge, drives the dark pixels beside it negative.
@@ -388,7 +409,7 @@ def deblur_joint(
     if coarse:
         sub = (lambda d, t: progress(d * total // max(t, 1), units)) if progress else None
         start = _coarse_start(
-            obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts, sub
+            obs, L_init, velocity, T, frame_s, subframe_s, leakage, saturated, opts, sub, layers
         )
     ref = np.stack(
         [cv2.GaussianBlur(L_init[..., k].astype(np.float32), (0, 0), 1.0) for k in range(c)], -1

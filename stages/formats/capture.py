@@ -17,6 +17,10 @@ layer              channels     meaning
 ``truth``          Y or R,G,B   optional ground truth: scene radiance at t = 0, in
                                 scene units (simulated captures)
 ``truth_motion``   u, v         optional true image velocity at t = 0, pixels/s
+``truth_layers``   Y            optional true layer of each pixel at t = 0 (0, 1, ...)
+                                for a motion along paths: ``meta["truth_trajectory"]``
+                                holds ``times`` (M,) s and ``disp`` (layers, M, 2) px,
+                                each layer's displacement from t = 0
 =================  ===========  =====================================================
 
 Metadata: ``kind = "capture"``, ``rig`` (:class:`~stages.rig.RigParams`),
@@ -69,6 +73,7 @@ class Capture:
     transmittance: np.ndarray | None = None  # (H, W)
     truth: np.ndarray | None = None  # (H, W, C) scene units
     truth_motion: np.ndarray | None = None  # (H, W, 2) px/s
+    truth_layers: np.ndarray | None = None  # (H, W) layer index (motions along paths)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -104,6 +109,13 @@ class Capture:
                 raise FormatError(f"{what}: measuring images do not match I's size")
             if self.measure_times is None or self.measure_times.shape != (self.measure.shape[0], 2):
                 raise FormatError(f"{what}: measuring images lack their time bins")
+        if self.truth_layers is not None:
+            tt = self.meta.get("truth_trajectory")
+            n_layers = len(tt.get("disp", [])) if isinstance(tt, dict) else 0
+            if self.truth_layers.shape != self.T.shape or not n_layers:
+                raise FormatError(f"{what}: truth_layers without a matching truth_trajectory")
+            if int(self.truth_layers.min()) < 0 or int(self.truth_layers.max()) >= n_layers:
+                raise FormatError(f"{what}: truth_layers names a layer truth_trajectory lacks")
         if self.transmittance is not None and self.transmittance.shape != self.T.shape:
             raise FormatError(f"{what}: transmittance does not match T's size")
 
@@ -121,6 +133,8 @@ class Capture:
             data.add("truth", self.truth, self.channels)
         if self.truth_motion is not None:
             data.add("truth_motion", self.truth_motion, ["u", "v"])
+        if self.truth_layers is not None:
+            data.add("truth_layers", self.truth_layers, ["Y"])
         meta = dict(self.meta)
         meta["kind"] = "capture"
         meta["format_version"] = 1
@@ -176,6 +190,11 @@ class Capture:
             transmittance=data.layers["A"][:, :, 0] if "A" in data.layers else None,
             truth=data.layers.get("truth"),
             truth_motion=data.layers.get("truth_motion"),
+            truth_layers=(
+                np.rint(data.layers["truth_layers"][:, :, 0]).astype(np.int32)
+                if "truth_layers" in data.layers
+                else None
+            ),
         )
         cap.validate(what)
         return cap

@@ -12,6 +12,12 @@ that tools reading attributes as lines of text take them whole), readable with `
 
 NPZ layout: array ``layer:{name}`` per layer, plus 0-d unicode arrays ``__channels__``
 and ``__meta__`` holding JSON. Nothing is pickled; reading refuses object arrays.
+
+Compact layers. A layer held as ``int16`` or ``float16`` (whole digital numbers, such as
+a capture's measuring stream) stays compact: EXR stores its channels as HALF (exact for
+whole numbers up to 2048 in magnitude, the nearest even number up to 4096: below the
+shot noise of such codes), npz as the array itself, deflated; both read back as
+``float16`` (EXR) or the stored type (npz). Every other layer is float32.
 """
 
 from __future__ import annotations
@@ -40,6 +46,13 @@ KIND_ATTR = "vetKind"
 LEGACY_ATTRS = {META_ATTR: "vet:meta", KIND_ATTR: "vet:kind"}
 
 
+#: Layer types kept compact in memory and on disk (module docstring).
+COMPACT_DTYPES = (np.dtype(np.int16), np.dtype(np.float16))
+
+#: Rows per EXR write (bounds the float32 staging buffer).
+EXR_WRITE_ROWS = 64
+
+
 @dataclass
 class Layered:
     """Named float32 layers of one size plus metadata."""
@@ -49,7 +62,9 @@ class Layered:
     meta: dict[str, Any] = field(default_factory=dict)
 
     def add(self, name: str, array: np.ndarray, channels: list[str]) -> None:
-        a = np.asarray(array, dtype=np.float32)
+        a = np.asarray(array)
+        if a.dtype not in COMPACT_DTYPES:
+            a = a.astype(np.float32, copy=False)
         if a.ndim == 2:
             a = a[:, :, None]
         if a.ndim != 3 or a.shape[2] != len(channels):
@@ -96,12 +111,15 @@ def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | N
     h, w = data.shape
     names: list[str] = []
     arrays: list[np.ndarray] = []
+    formats: list[str] = []
     for layer, arr in data.layers.items():
         names += [_channel_name(layer, c) for c in data.channels[layer]]
         arrays.append(arr)
-    pixels = np.ascontiguousarray(np.concatenate(arrays, axis=2), dtype=np.float32)
+        formats += ["half" if arr.dtype in COMPACT_DTYPES else "float"] * arr.shape[2]
     spec = oiio.ImageSpec(w, h, len(names), "float")
     spec.channelnames = tuple(names)
+    if "half" in formats:
+        spec.channelformats = tuple(oiio.TypeDesc(f) for f in formats)
     spec.attribute("compression", compression)
     spec.attribute(KIND_ATTR, str(data.meta.get("kind", "")))
     text = json.dumps(data.meta, sort_keys=True, default=_json_default)
@@ -111,8 +129,12 @@ def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | N
     if out is None or not out.open(str(path), spec):
         raise OutputError(f"{what}: cannot write EXR ({_last_error(oiio.geterror, '?')})")
     try:
-        if not out.write_image(pixels):
-            raise OutputError(f"{what}: cannot write EXR ({_last_error(out.geterror, '?')})")
+        # A band of rows at a time: the float32 staging copy stays small.
+        for y0 in range(0, h, EXR_WRITE_ROWS):
+            y1 = min(h, y0 + EXR_WRITE_ROWS)
+            band = np.concatenate([a[y0:y1].astype(np.float32) for a in arrays], axis=2)
+            if not out.write_scanlines(y0, y1, 0, np.ascontiguousarray(band)):
+                raise OutputError(f"{what}: cannot write EXR ({_last_error(out.geterror, '?')})")
     finally:
         out.close()
 
@@ -160,7 +182,8 @@ def read_oiio(
     what: str,
     attrs: tuple[str, ...] = (),
     before_pixels: Callable[[dict[str, str], int, int], None] | None = None,
-) -> tuple[np.ndarray, list[str], dict[str, str]]:
+    keep_half: bool = False,
+) -> tuple[np.ndarray | list[np.ndarray], list[str], dict[str, str]]:
     """Read any image OpenImageIO reads at full resolution (subimage 0, MIP level 0;
     tiles handled by OIIO), checking the header before allocating.
 
@@ -169,7 +192,8 @@ def read_oiio(
     pixel bytes it declares against the file's size on disk), and ``before_pixels(attrs,
     height, width)`` may refuse the file (by raising) before any pixel is read.
 
-    Returns ``(pixels (H, W, C) float32, channel names, {attr: string value})``.
+    Returns ``(pixels (H, W, C) float32, channel names, {attr: string value})``; with
+    ``keep_half``, ``pixels`` is a list of (H, W) planes, float16 for HALF channels.
     """
     oiio = _oiio()
     inp = oiio.ImageInput.open(str(path))
@@ -177,7 +201,7 @@ def read_oiio(
         msg = _last_error(oiio.geterror, "unknown format")
         raise FormatError(f"{what}: not a readable image ({msg})")
     try:
-        return _read_oiio_pixels(inp, path, what, attrs, before_pixels)
+        return _read_oiio_pixels(inp, path, what, attrs, before_pixels, keep_half)
     except UnicodeDecodeError:
         raise FormatError(f"{what}: header holds names or text that are not UTF-8") from None
     finally:
@@ -190,25 +214,45 @@ def _read_oiio_pixels(
     what: str,
     attrs: tuple[str, ...],
     before_pixels: Callable[[dict[str, str], int, int], None] | None,
-) -> tuple[np.ndarray, list[str], dict[str, str]]:
+    keep_half: bool = False,
+) -> tuple[np.ndarray | list[np.ndarray], list[str], dict[str, str]]:
     spec = inp.spec()
     w, h, nch = int(spec.width), int(spec.height), int(spec.nchannels)
     if w <= 0 or h <= 0 or nch <= 0:
         raise FormatError(f"{what}: image has no pixels")
     if nch > MAX_CHANNELS:
         raise FormatError(f"{what}: image has {nch} channels, over the limit of {MAX_CHANNELS}")
-    limits.check_declared(w * h * nch * 4, Path(path).stat().st_size, what)
+    kinds = [str(t) for t in spec.channelformats] or [str(spec.format)] * nch
+    half = [keep_half and k == "half" for k in kinds]
+    declared = w * h * sum(2 if hf else 4 for hf in half)
+    limits.check_declared(declared, Path(path).stat().st_size, what)
     values = {
         a: _joined_meta(spec) if a == META_ATTR else spec.get_string_attribute(a, "") for a in attrs
     }
     if before_pixels is not None:
         before_pixels(values, h, w)
-    pixels = inp.read_image(0, 0, 0, nch, "float")
-    if pixels is None:
-        msg = _last_error(inp.geterror, "truncated?")
-        raise FormatError(f"{what}: pixel data unreadable ({msg})")
     names = list(spec.channelnames)
-    return np.asarray(pixels, dtype=np.float32).reshape(h, w, nch), names, values
+    if not any(half):
+        pixels = inp.read_image(0, 0, 0, nch, "float")
+        if pixels is None:
+            msg = _last_error(inp.geterror, "truncated?")
+            raise FormatError(f"{what}: pixel data unreadable ({msg})")
+        return np.asarray(pixels, dtype=np.float32).reshape(h, w, nch), names, values
+    planes: list[np.ndarray] = []
+    c0 = 0
+    while c0 < nch:  # runs of channels of one kind, each read in its own type
+        c1 = c0 + 1
+        while c1 < nch and half[c1] == half[c0]:
+            c1 += 1
+        fmt = "half" if half[c0] else "float"
+        run = inp.read_image(0, 0, c0, c1, fmt)
+        if run is None:
+            msg = _last_error(inp.geterror, "truncated?")
+            raise FormatError(f"{what}: pixel data unreadable ({msg})")
+        run = np.asarray(run, dtype=np.float16 if half[c0] else np.float32).reshape(h, w, c1 - c0)
+        planes += [run[:, :, i] for i in range(c1 - c0)]
+        c0 = c1
+    return planes, names, values
 
 
 def read_exr(path: Path, what: str | None = None) -> Layered:
@@ -224,7 +268,7 @@ def read_exr(path: Path, what: str | None = None) -> Layered:
             schema.check_meta(meta, what)
         _check_declared_size(declared_size(meta), (h, w), "", what)
 
-    pixels, names, _ = read_oiio(path, what, (META_ATTR,), check)
+    pixels, names, _ = read_oiio(path, what, (META_ATTR,), check, keep_half=True)
     data = Layered(meta=meta)
     grouped: dict[str, list[tuple[str, int]]] = {}
     for i, name in enumerate(names):
@@ -240,7 +284,10 @@ def read_exr(path: Path, what: str | None = None) -> Layered:
         ):
             idx = dict(chans)
             chans = [(c, idx[c]) for c in wanted]
-        data.layers[layer] = np.ascontiguousarray(pixels[:, :, [i for _, i in chans]])
+        if isinstance(pixels, list):
+            data.layers[layer] = np.stack([pixels[i] for _, i in chans], axis=2)
+        else:
+            data.layers[layer] = np.ascontiguousarray(pixels[:, :, [i for _, i in chans]])
         data.channels[layer] = [c for c, _ in chans]
     return data
 
@@ -249,11 +296,19 @@ def read_exr(path: Path, what: str | None = None) -> Layered:
 
 
 def write_npz(path: Path, data: Layered) -> None:
+    """Write ``data`` as npz: float32 layers stored, compact ones deflated (module
+    docstring), one member at a time."""
     arrays = {f"layer:{k}": v for k, v in data.layers.items()}
     arrays["__channels__"] = np.array(json.dumps(data.channels))
     arrays["__meta__"] = np.array(json.dumps(data.meta, sort_keys=True, default=_json_default))
-    with open(path, "wb") as f:
-        np.savez(f, **arrays)
+    with zipfile.ZipFile(path, "w", allowZip64=True, compresslevel=1) as zf:
+        for name, arr in arrays.items():
+            method = zipfile.ZIP_DEFLATED if arr.dtype in COMPACT_DTYPES else zipfile.ZIP_STORED
+            info = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = method
+            info._compresslevel = 1  # (the attribute zipfile reads; fast deflate)
+            with zf.open(info, "w", force_zip64=True) as fp:
+                np.lib.format.write_array(fp, np.asanyarray(arr), allow_pickle=False)
 
 
 #: The tables every vet npz holds besides its ``layer:{name}.npy`` members.
@@ -261,7 +316,7 @@ _NPZ_TABLES = ("__meta__.npy", "__channels__.npy")
 #: Zip methods numpy writes (stored, deflate); others (bzip2, lzma) are refused.
 _NPZ_METHODS = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED)
 #: Most layers (npz members or EXR channels) one file may hold.
-MAX_CHANNELS = 1024
+MAX_CHANNELS = 4096
 
 
 #: What numpy's .npy reader and zipfile raise on damaged input (the header is parsed with
@@ -393,12 +448,14 @@ def read_npz(path: Path, what: str | None = None) -> Layered:
                 )
             size = shape[:2]
             _check_declared_size(expected, size, name, what)
-            total += math.prod(shape) * max(dtype.itemsize, 4)
+            kept = dtype in COMPACT_DTYPES
+            total += math.prod(shape) * (dtype.itemsize if kept else max(dtype.itemsize, 4))
         limits.check_declared(total, on_disk, what)
         data = Layered(meta=meta)
         for name, (info, _, _) in layers.items():
             arr = _npz_array(zf, info, what)
-            data.layers[name] = np.ascontiguousarray(arr, dtype=np.float32)
+            keep = arr.dtype if arr.dtype in COMPACT_DTYPES else np.float32
+            data.layers[name] = np.ascontiguousarray(arr, dtype=keep)
             data.channels[name] = [str(c) for c in channels[name]]
     return data
 

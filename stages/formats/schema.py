@@ -138,6 +138,29 @@ class _FileMeta(_Open):
     units: Any = None
 
 
+class TruthTrajectory(BaseModel):
+    """Each layer's true path (:mod:`stages.motion`, motions along paths)."""
+
+    model_config = ConfigDict(extra="forbid")
+    times: Annotated[list[Float], Field(min_length=1, max_length=MAX_SUBFRAMES + 2)]
+    disp: Annotated[
+        list[
+            Annotated[
+                list[Annotated[list[Float], Field(min_length=2, max_length=2)]],
+                Field(max_length=MAX_SUBFRAMES + 2),
+            ]
+        ],
+        Field(min_length=1, max_length=16),
+    ]
+
+    @model_validator(mode="after")
+    def _lengths(self) -> TruthTrajectory:
+        for k, path in enumerate(self.disp):
+            if len(path) != len(self.times):
+                raise ValueError(f"disp.{k}: {len(path)} displacements for {len(self.times)} times")
+        return self
+
+
 class CaptureMeta(_FileMeta):
     """A capture's metadata (:mod:`stages.formats.capture`)."""
 
@@ -152,6 +175,7 @@ class CaptureMeta(_FileMeta):
         ]
         | None
     ) = None
+    truth_trajectory: TruthTrajectory | None = None
 
     @model_validator(mode="after")
     def _bins(self) -> CaptureMeta:
@@ -356,7 +380,7 @@ def check_layers(
     if kind == "capture":
         bins = [k for k in layers if len(k) >= 3 and k[0] == "M" and k[1:].isdigit()]
         image = channels.get("I")
-        wanted = {"T": ["Y"], "A": ["Y"], "truth_motion": ["u", "v"]}
+        wanted = {"T": ["Y"], "A": ["Y"], "truth_motion": ["u", "v"], "truth_layers": ["Y"]}
         wanted.update({k: image for k in (*bins, "truth")})
         for name, chans in wanted.items():
             if name in channels and image is not None and list(channels[name]) != list(chans):
