@@ -25,11 +25,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from .formats.capture import Capture
+from .formats.capture import MOTION_BINS, Capture
 from .formats.layered import Layered, write_layered
 from .physics import bin_may_clip
 
 FLOW_METHODS = ("farneback", "dis")
+
+
+def motion_bins(cap: Capture) -> Capture:
+    """The capture as the motion estimators read it: a capture that keeps its whole
+    measuring stream is summed into :data:`~stages.formats.capture.MOTION_BINS` time
+    bins (a single subframe is too noisy in the dark to match alone); one with time bins
+    as it is."""
+    return cap.time_bins(MOTION_BINS) if cap.keeps_stream else cap
 
 
 def measure_rates(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -48,6 +56,7 @@ def measure_rates(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         from .errors import InputError
 
         raise InputError("capture has no measuring images; motion cannot be estimated from it")
+    cap = motion_bins(cap)
     rig = cap.rig
     g = rig.gain_dn_per_e
     dur = np.diff(cap.measure_times, axis=1)[:, 0]
@@ -144,6 +153,7 @@ def estimate_velocity(
     """
     import cv2
 
+    cap = motion_bins(cap)
     rate, sigma, valid = measure_rates(cap)
     nb = rate.shape[0]
     h, w = rate.shape[1:3]

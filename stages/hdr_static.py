@@ -138,7 +138,7 @@ def _rate_from_measure(
     # A stream's first eighth of subframes, summed, as an 8-bin capture's first bin.
     n0 = 1
     if cap.measure.dtype != np.float32 or cap.measure.shape[0] > 8:
-        from .simulate import measure_bin_edges
+        from .formats.capture import measure_bin_edges
 
         n0 = int(measure_bin_edges(cap.measure.shape[0], 8)[1])
     t0, t1 = float(cap.measure_times[0][0]), float(cap.measure_times[n0 - 1][1])

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .formats.capture import Capture, provenance_entry
+from .formats.capture import Capture, measure_bin_edges, provenance_entry
 from .motion import Motion, TrajectoryMotion, trajectory_times
 from .physics import (
     CellMap,
@@ -53,12 +53,6 @@ from .rig import RigParams
 from .scenes import Scene, luminance
 
 METHODS = ("vet", "long", "short", "adaptive-attenuation")
-
-
-def measure_bin_edges(n_subframes: int, n_bins: int) -> np.ndarray:
-    """Subframe index edges of ``n_bins`` near-equal bins (``n_bins + 1`` integers)."""
-    n_bins = max(1, min(n_bins, n_subframes))
-    return np.linspace(0, n_subframes, n_bins + 1).round().astype(int)
 
 
 def simulate(

@@ -286,7 +286,9 @@ def test_measuring_bins_are_called_clipped_alike_by_all_their_readers():
     from stages.hdr_static import _rate_from_measure
 
     rig = RigParams(sensor_size=(32, 24))
-    cap = simulate(builtin_interior(32, 24), parse_motion("none"), rig, methods=["vet"])["vet"]
+    cap = simulate(
+        builtin_interior(32, 24), parse_motion("none"), rig, methods=["vet"], measure_bins=8
+    )["vet"]
     n_sub = np.rint(np.diff(cap.measure_times, axis=1)[:, 0] / rig.subframe_s)
     # (0, 0): 3930 DN a subframe, under the flag (3967); (0, 1): 4020, over it, yet
     # under saturation_dn; in one channel of (0, 1) only.

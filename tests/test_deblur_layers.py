@@ -256,8 +256,11 @@ def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
 
     from stages.deblur.layers.bins import rate_frames as _rate_frames
 
-    lum, noise, _valid = _rate_frames(cap)
-    centres = cap.measure_times.mean(axis=1)
+    from stages.flow import motion_bins
+
+    binned = motion_bins(cap)  # (the time bins the layer estimate reads)
+    lum, noise, _valid = _rate_frames(binned)
+    centres = binned.measure_times.mean(axis=1)
     vels = np.array([[0.0, 0.0], [40.0, 10.0]], np.float32)
     box = np.ones((7, 7), np.uint8)
     t8 = truth.astype(np.uint8)

@@ -67,9 +67,13 @@ def test_observations_hold_the_bins_once_in_float32():
     # Before, the bins went through float64 copies of all of them at once (electrons,
     # variance, weights, data): a peak of 12x the capture's own float32 bins here.
     rig = RigParams(sensor_size=(64, 48))
-    cap = simulate(builtin_interior(64, 48), parse_motion("translate:30,0"), rig, methods=["vet"])[
-        "vet"
-    ]
+    cap = simulate(
+        builtin_interior(64, 48),
+        parse_motion("translate:30,0"),
+        rig,
+        methods=["vet"],
+        measure_bins=8,
+    )["vet"]
     obs, peak = _traced_peak(lambda: observations(cap))
     assert obs.yb.dtype == np.float32 and obs.wb.dtype == np.float32
     assert obs.yb.shape == (cap.measure.shape[0] * 48 * 64, 3)

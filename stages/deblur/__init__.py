@@ -83,10 +83,9 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
         raise InputError(
             f"unknown motion initialisation {motion_init!r}; choose from {', '.join(MOTION_INITS)}"
         )
-    from .problem import has_stream
+    from ..flow import motion_bins
 
-    if has_stream(cap):  # the motion estimators work on time bins of the stream
-        cap = _binned_capture(cap)
+    cap = motion_bins(cap)  # the motion estimators work on time bins of a stream
     if motion_init == "layers":
         from .layers import estimate_layers
 
@@ -107,27 +106,10 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
     return suppress_small_motion(vel), "dense"
 
 
-def _binned_capture(cap: Capture, n_bins: int = 8) -> Capture:
-    """The capture with its stream summed into ``n_bins`` time bins."""
-    from ..simulate import measure_bin_edges
-
-    edges = measure_bin_edges(cap.measure.shape[0], n_bins)
-    bins = np.stack(
-        [
-            cap.measure[a:b].astype(np.float32).sum(axis=0)
-            for a, b in zip(edges[:-1], edges[1:], strict=True)
-        ]
-    )
-    mt = np.stack([cap.measure_times[edges[:-1], 0], cap.measure_times[edges[1:] - 1, 1]], axis=1)
-    return replace(cap, measure=bins, measure_times=mt)
-
-
 def changing_motion(cap: Capture):
     """Layers along measured paths when the capture keeps its stream and its motion
     changes within the frame (:mod:`stages.deblur.layers.paths`), else None."""
-    from .problem import has_stream
-
-    if not has_stream(cap):
+    if not cap.keeps_stream:
         return None
     from .layers.paths import path_layers, tile_paths
 
@@ -321,7 +303,7 @@ def deblur(
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
-        obs = observations(cap, use_measure=opts.use_measure)
+        obs = observations(cap, use_measure=opts.use_measure, stream=opts.stream_fit)
         report: dict = {}
         L, vel = deblur_joint(
             obs,

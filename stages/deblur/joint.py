@@ -99,6 +99,8 @@ class JointOptions:
     cauchy_k: float = 2.0
     update_motion: bool = False
     use_measure: bool = True
+    #: Fit a stream capture through its aligned mean, not time bins (experimental).
+    stream_fit: bool = False
     fuse_still: bool | None = None
     step_px: float = 1.0
     levels: int = 1

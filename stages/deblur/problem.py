@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..formats.capture import Capture
+from ..formats.capture import MOTION_BINS, Capture
 from ..physics import bin_may_clip
 from .operator import Window, blur_matrix, motion_layers, vet_windows
 from .stream import StreamTerm
@@ -58,20 +58,24 @@ class Observations:
     stream: StreamTerm | None = None
 
 
+#: Time bins the misfit reads of a capture that keeps its whole measuring stream.
+FIT_BINS = MOTION_BINS
+
+
 def has_stream(cap: Capture) -> bool:
-    """Whether the capture keeps its measuring stream: two or more measuring images,
-    each one subframe long."""
-    if cap.measure is None or cap.measure_times is None or cap.measure.shape[0] < 2:
-        return False
-    dur = np.diff(np.asarray(cap.measure_times, np.float64), axis=1)[:, 0]
-    return bool(np.all(np.rint(dur / cap.rig.subframe_s) <= 1))
+    """Whether the capture keeps its measuring stream (:attr:`Capture.keeps_stream`)."""
+    return cap.keeps_stream
 
 
-def observations(cap: Capture, use_measure: bool = True) -> Observations:
+def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -> Observations:
     """Turn a capture into electrons and noise weights (see :class:`Observations`).
 
-    A capture with its whole measuring stream (:func:`has_stream`) is observed through
-    the stream's term (``stream_src``); one with time bins through the bins.
+    A capture with time bins is observed through its bins. One that keeps its whole
+    measuring stream (:func:`has_stream`) is observed through :data:`FIT_BINS` time bins
+    of it (sums of its subframes, each bin's variance carrying one read noise per
+    subframe), or with ``stream`` through the stream's aligned mean (``stream_src``,
+    :mod:`stages.deblur.stream`; experimental: on textured scenes and moving objects it
+    still loses to the bins).
     """
     rig = cap.rig
     g = rig.gain_dn_per_e
@@ -88,6 +92,8 @@ def observations(cap: Capture, use_measure: bool = True) -> Observations:
     wins = vet_windows(cap.T, tf, rig.subframe_s, rig.n_subframes, rig.leakage)
     yb = wb = None
     wins_b: list[list[Window]] = []
+    if use_measure and has_stream(cap) and not stream:
+        cap = cap.time_bins(FIT_BINS)
     if use_measure and has_stream(cap):
         return Observations(
             (h, w, c),

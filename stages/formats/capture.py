@@ -59,6 +59,16 @@ def provenance_entry(step: str, inputs: list[str] | None = None, **params: Any) 
     }
 
 
+def measure_bin_edges(n_subframes: int, n_bins: int) -> np.ndarray:
+    """Subframe index edges of ``n_bins`` near-equal bins (``n_bins + 1`` integers)."""
+    n_bins = max(1, min(n_bins, n_subframes))
+    return np.linspace(0, n_subframes, n_bins + 1).round().astype(int)
+
+
+#: Time bins the motion estimators read of a capture that keeps its whole stream.
+MOTION_BINS = 8
+
+
 @dataclass
 class Capture:
     """One recorded (or simulated) VET frame. Arrays are float32."""
@@ -78,6 +88,34 @@ class Capture:
     @property
     def shape(self) -> tuple[int, int]:
         return self.I.shape[:2]
+
+    @property
+    def keeps_stream(self) -> bool:
+        """Whether the capture keeps its measuring stream: two or more measuring images,
+        each one subframe long."""
+        if self.measure is None or self.measure_times is None or self.measure.shape[0] < 2:
+            return False
+        dur = np.diff(np.asarray(self.measure_times, np.float64), axis=1)[:, 0]
+        return bool(np.all(np.rint(dur / self.rig.subframe_s) <= 1))
+
+    def time_bins(self, n_bins: int) -> Capture:
+        """The capture with its measuring images summed into ``n_bins`` near-equal time
+        bins (float32 DN, times ``[start of the first, end of the last)``); itself when it
+        has no more images than that."""
+        from dataclasses import replace
+
+        if self.measure is None or self.measure_times is None or self.measure.shape[0] <= n_bins:
+            return self
+        edges = measure_bin_edges(self.measure.shape[0], n_bins)
+        bins = np.stack(
+            [
+                self.measure[a:b].astype(np.float32).sum(axis=0)
+                for a, b in zip(edges[:-1], edges[1:], strict=True)
+            ]
+        )
+        mt = np.asarray(self.measure_times, np.float64)
+        times = np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
+        return replace(self, measure=bins, measure_times=times)
 
     @property
     def method(self) -> str:

@@ -38,6 +38,9 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
     """Layered velocity field of a capture (see the module docstring)."""
     import cv2
 
+    from ...flow import motion_bins
+
+    cap = motion_bins(cap)
     h, w = cap.shape
     lum, noise, valid_full = rate_frames(cap)
     lv, slv, valid, (sx, sy) = work_frames(lum, noise, valid_full, MAX_WORK_PX)
