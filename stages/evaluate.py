@@ -4,7 +4,8 @@ Reproduces the paper's published comparison: one :func:`stages.simulate.simulate
 renders the VET capture and the comparison captures (long, short, adaptive
 attenuation) from the same scene, motion and noise; each is reconstructed (hdr-static for
 the comparison methods and for VET without optimisation; deblur for VET with it, default
-and published methods, and the default method with the true motion as an oracle) and
+and published methods, and the default method with the true motion as an oracle; the
+burst merge of the VET capture's measuring images alone, :mod:`stages.burst`) and
 scored against the true scene at t = 0 with :func:`stages.metrics.stops_error`, split by
 the VET capture's exposure time: ``dark`` pixels were exposed the whole frame, ``bright``
 ones closed early. The same split is used for every method so that rows compare like
@@ -40,6 +41,7 @@ ROWS = (
     "vet-deblur",
     "vet-deblur-paper",
     "vet-static",
+    "burst-merge",
     "adaptive-attenuation",
     "long",
     "short",
@@ -95,6 +97,7 @@ def run_evaluation(
     row); ``on_step(done, total)`` reports the work done in hundredths of a part
     (``total = 100 * parts``), from ``(0, total)`` to ``(total, total)``.
     """
+    from .burst import burst_hdr
     from .deblur import deblur
     from .hdr_static import hdr_static
     from .metrics import measurable_floor, stops_error
@@ -154,6 +157,7 @@ def run_evaluation(
     ev.runtime_s["simulate"] = sim_s
     plan: dict[str, Callable[[Callable[[int, int], None]], Any]] = {
         "vet-static": lambda p: (hdr_static(vet), None),
+        "burst-merge": lambda p: (burst_hdr(vet, p), None),
         "adaptive-attenuation": lambda p: (hdr_static(caps["adaptive-attenuation"]), None),
         "long": lambda p: (hdr_static(caps["long"]), None),
         "short": lambda p: (hdr_static(caps["short"]), None),

@@ -255,7 +255,6 @@ def test_boundary_labels_are_decided_at_full_resolution(monkeypatch):
     import cv2
 
     from stages.deblur.layers.bins import rate_frames as _rate_frames
-
     from stages.flow import motion_bins
 
     binned = motion_bins(cap)  # (the time bins the layer estimate reads)

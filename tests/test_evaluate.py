@@ -44,6 +44,7 @@ def test_evaluate_writes_all_files(tmp_path):
         "vet-deblur",
         "vet-deblur-paper",
         "vet-static",
+        "burst-merge",
         "adaptive-attenuation",
         "long",
         "short",

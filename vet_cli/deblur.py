@@ -33,7 +33,10 @@ robust at occlusions; pixels whose integration path does not move take the value
 all their data (I and the measuring images) when anything moves, and hdr-static's when
 nothing does (a still capture comes out as hdr-static; --fuse-still and --keep-still
 choose one always); --method paper reproduces the published method (least squares on
-I, Laplacian and histogram-intersection priors, steepest descent). --motion-init truth
+I, Laplacian and histogram-intersection priors, steepest descent); --method burst is
+the comparison baseline of a burst camera: the measuring images alone, aligned tile by
+tile to the first and merged robustly (Hasinoff et al. 2016, HDR+), the VET image
+unused. --motion-init truth
 uses the simulator's true motion: an oracle for research.
 Output is float32 EXR in the units of hdr-static, with its mask and T.
 
@@ -49,7 +52,7 @@ Example:
 )
 @click.option(
     "--method",
-    type=click.Choice(["vet", "paper"]),
+    type=click.Choice(["vet", "paper", "burst"]),
     default="vet",
     show_default=True,
     help="Reconstruction method.",
@@ -131,6 +134,18 @@ def cli(
     if fuse_still is not None and method != "vet":
         flag = "--fuse-still" if fuse_still else "--keep-still"
         raise click.UsageError(f"{flag} applies to --method vet only")
+    if method == "burst":
+        given = [
+            flag
+            for flag, value in (
+                ("--motion-init", motion_init),
+                ("--motion-out", motion_out),
+                ("--motion-picture", motion_picture),
+            )
+            if value is not None
+        ]
+        if given:
+            raise click.UsageError(f"{given[0]} does not apply to --method burst (no motion field)")
     check_outputs(
         [
             Output("-o", output),
@@ -141,6 +156,14 @@ def cli(
     )
     source = resolve_capture_path(capture)
     cap = read_capture(source)
+    if method == "burst":
+        from stages.burst import burst_hdr
+
+        with Progress("deblur burst") as progress:
+            img = burst_hdr(cap, progress=progress)
+        record_inputs(img.meta, [source])
+        write_hdr(output, img)
+        return
     with Progress(f"deblur {method}") as progress:
         img, vel = deblur(
             cap,
