@@ -152,3 +152,27 @@ def test_deblur_with_the_stream_beats_the_bins(motion):
         err[name] = stops_error(img.radiance, c8.truth, c8.T, rig.frame_s, floor=floor)["all"]
     assert err["stream"]["rms"] < err["bins"]["rms"]
     assert err["stream"]["median"] < err["bins"]["median"]
+
+
+def test_default_deblur_of_a_stream_never_loses_to_its_time_bins():
+    """The default deblur of a capture that keeps its stream is at least as close to the
+    truth as that of the same capture summed into 8 bins (before, the stream's path
+    detector took this constant-velocity object for a changing motion: dark RMS 2.18
+    against 0.54 stops)."""
+    from stages.deblur import deblur
+    from stages.metrics import measurable_floor, stops_error
+    from stages.motion import parse_motion
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    scene = load_scene("builtin:chart", (160, 128))
+    rig = RigParams(sensor_size=(160, 128))
+    cap = simulate(scene, parse_motion("object:40,32,80,64:40,10"), rig, seed=0)["vet"]
+    assert cap.keeps_stream
+    floor = measurable_floor(rig, cap.radiance_scale)
+    err = {}
+    for name, c in (("stream", cap), ("bins", cap.time_bins(8))):
+        img, _ = deblur(c)
+        err[name] = stops_error(img.radiance, cap.truth, cap.T, rig.frame_s, floor=floor)["dark"]
+    assert err["stream"]["rms"] <= err["bins"]["rms"] * 1.001
+    assert err["stream"]["median"] <= err["bins"]["median"] * 1.001

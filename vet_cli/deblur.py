@@ -59,10 +59,12 @@ Example:
 )
 @click.option(
     "--motion-init",
-    type=click.Choice(["layers", "farneback", "dis", "truth", "zero"]),
+    type=click.Choice(["layers", "paths", "farneback", "dis", "truth", "zero"]),
     default=None,
-    help="Motion estimate: layered (default for --method vet), dense Farnebäck (default for "
-    "--method paper) or DIS flow, the simulator's truth, or none.",
+    help="Motion estimate: layered (default for --method vet), layers along paths measured "
+    "from the whole measuring stream when the motion changes within the frame (paths, "
+    "experimental), dense Farnebäck (default for --method paper) or DIS flow, the "
+    "simulator's truth, or none.",
 )
 @click.option(
     "--motion-out",

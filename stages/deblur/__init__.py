@@ -38,7 +38,7 @@ from ..hdr_static import hdr_static, rate_to_output_units
 log = logging.getLogger(__name__)
 
 METHODS = ("vet", "paper")
-MOTION_INITS = ("layers", "farneback", "dis", "truth", "zero")
+MOTION_INITS = ("layers", "paths", "farneback", "dis", "truth", "zero")
 
 
 def output_to_rate(cap: Capture, radiance: np.ndarray) -> np.ndarray:
@@ -191,9 +191,12 @@ def deblur(
         estimation, measuring images.
     method : {'vet', 'paper'}
         The default joint method or the published one.
-    motion_init : {'layers', 'farneback', 'dis', 'truth', 'zero'}, optional
+    motion_init : {'layers', 'paths', 'farneback', 'dis', 'truth', 'zero'}, optional
         Where the motion starts; default ``layers`` for the default method and Farnebäck
-        (the paper's choice) for the published one.
+        (the paper's choice) for the published one. ``paths`` (experimental, a capture
+        that keeps its stream): layers along paths measured from the stream when the
+        motion changes within the frame (:func:`changing_motion`), else ``layers``; its
+        detector also fires on some constant-velocity objects, where it does worse.
     progress : callable, optional
         ``progress(done, total)``.
     options : JointOptions or PaperOptions, optional
@@ -259,13 +262,15 @@ def deblur(
             raise InputError(f"the given motion is {motion.shape}, not {(*cap.shape, 2)}")
         vel0 = motion.astype(np.float32)
     else:
-        if motion_init == "layers":
+        if motion_init == "paths":
             layers = changing_motion(cap)
-        if layers is not None and motion_init == "layers":
+        if layers is not None and motion_init == "paths":
             vel0 = layers.velocity[layers.label].astype(np.float32)
             motion_model = "layer-paths"
         else:
-            vel0, motion_model = start_motion(cap, motion_init)
+            vel0, motion_model = start_motion(
+                cap, "layers" if motion_init == "paths" else motion_init
+            )
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
     # Pixels saturated in the VET image and in the first bin: only a lower bound is known.
