@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..formats.capture import MOTION_BINS, Capture
+from ..formats.capture import Capture
 from ..physics import bin_may_clip
 from .operator import Window, blur_matrix, motion_layers, vet_windows
 from .stream import StreamTerm
