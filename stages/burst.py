@@ -50,6 +50,7 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+import scipy.fft
 
 from .formats.capture import Capture, provenance_entry
 from .formats.hdr import HDRImage
@@ -88,9 +89,10 @@ def _pyramid(img: np.ndarray, levels: int) -> list[np.ndarray]:
 
 def _tile_sums(cost: np.ndarray, n_ty: int, n_tx: int, step: int) -> np.ndarray:
     """Sum of ``cost`` (H, W) over each tile of side ``2 step`` at stride ``step``."""
+    import cv2
+
     h, w = cost.shape
-    ii = np.zeros((h + 1, w + 1))
-    ii[1:, 1:] = cost.cumsum(0).cumsum(1)
+    ii = cv2.integral(np.ascontiguousarray(cost, np.float32), sdepth=cv2.CV_64F)
     y0 = np.arange(n_ty) * step
     x0 = np.arange(n_tx) * step
     y1 = np.minimum(y0 + 2 * step, h)
@@ -105,21 +107,14 @@ def _pull(dz: np.ndarray, sigma2: np.ndarray) -> np.ndarray:
     return dz * (mag / (mag + C_TEMPORAL * sigma2))
 
 
-def _shifted(img: np.ndarray, dy: int, dx: int) -> np.ndarray:
-    """``img(y + dy, x + dx)``, edges replicated."""
-    h, w = img.shape
-    ys = np.clip(np.arange(h) + dy, 0, h - 1)
-    xs = np.clip(np.arange(w) + dx, 0, w - 1)
-    return img[np.ix_(ys, xs)]
-
-
 def align(ref_pyr: list[np.ndarray], alt: np.ndarray) -> np.ndarray:
     """Per-tile whole-pixel displacement of ``alt`` onto the reference (§4): (n_ty, n_tx, 2)
     as ``(dy, dx)``: the tile at ``y`` of the reference is at ``y + d`` in ``alt``.
 
     Each level searches :data:`SEARCH` pixels (1 at the finest, as the paper) around the
     candidates the coarser level proposes; the work is one whole-image difference per
-    distinct candidate and offset, so a smooth motion (few distinct candidates) is cheap.
+    distinct shift that some tile tries, so a smooth motion (few distinct candidates) is
+    cheap.
     """
     alt_pyr = _pyramid(alt, len(ref_pyr))
     disp = None
@@ -142,20 +137,28 @@ def align(ref_pyr: list[np.ndarray], alt: np.ndarray) -> np.ndarray:
         cost_sum = np.zeros((n_ty, n_tx))
         cost_n = np.zeros((n_ty, n_tx))
         offsets = np.unique(np.concatenate([c.reshape(-1, 2) for c in cands]), axis=0)
-        for oy, ox in offsets:
-            has = np.zeros((n_ty, n_tx), bool)
+        window = np.array(
+            [(sy, sx) for sy in range(-radius, radius + 1) for sx in range(-radius, radius + 1)]
+        )
+        # Every distinct shift once (neighbouring candidates' windows overlap): its cost
+        # counts for the tiles that have a candidate within ``radius`` of it.
+        shifts = np.unique((offsets[:, None, :] + window[None]).reshape(-1, 2), axis=0)
+        margin = int(np.abs(shifts).max())
+        cur_pad = np.pad(cur, margin, mode="edge")
+        for dy, dx in shifts:
+            allowed = np.zeros((n_ty, n_tx), bool)
             for c in cands:
-                has |= (c[..., 0] == oy) & (c[..., 1] == ox)
-            for sy in range(-radius, radius + 1):
-                for sx in range(-radius, radius + 1):
-                    dy, dx = int(oy + sy), int(ox + sx)
-                    diff = ref - _shifted(cur, dy, dx)
-                    cost = _tile_sums(np.abs(diff) if lev == 0 else diff * diff, n_ty, n_tx, step)
-                    better = has & (cost < best)
-                    best[better] = cost[better]
-                    best_d[better] = (dy, dx)
-                    cost_sum += np.where(has, cost, 0.0)
-                    cost_n += has
+                allowed |= (np.abs(c[..., 0] - dy) <= radius) & (np.abs(c[..., 1] - dx) <= radius)
+            if not allowed.any():
+                continue
+            y0, x0 = margin + int(dy), margin + int(dx)
+            diff = ref - cur_pad[y0 : y0 + h, x0 : x0 + w]
+            cost = _tile_sums(np.abs(diff) if lev == 0 else diff * diff, n_ty, n_tx, step)
+            better = allowed & (cost < best)
+            best[better] = cost[better]
+            best_d[better] = (dy, dx)
+            cost_sum += np.where(allowed, cost, 0.0)
+            cost_n += allowed
         # A tile whose best match is not clearly better than its average one holds no
         # texture above the noise: it keeps the coarser level's proposal, and at the
         # coarsest level the median displacement of the confident tiles.
@@ -225,7 +228,8 @@ def burst_merge(
             ys = np.clip(yy + d[:, :, 0][:, :, None, None], 0, hp - 1)
             xs = np.clip(xx + d[:, :, 1][:, :, None, None], 0, wp - 1)
         t = img[ys, xs]  # (ty, tx, T, T, C)
-        return np.fft.rfft2(t * win[None, None, :, :, None], axes=(2, 3)).astype(np.complex64)
+        # (single precision throughout: scipy's FFT keeps float32 as complex64)
+        return scipy.fft.rfft2(t * win[None, None, :, :, None], axes=(2, 3))
 
     t0 = tiles(ref)
     # Noise variance per frequency of a tile: per-pixel variance (shot at the reference
@@ -264,7 +268,7 @@ def burst_merge(
     shrink_s = mag / (mag + C_SPATIAL * sigma2 / k_n)
     shrink_s[:, :, 0, 0] = 1.0  # a tile's mean is kept: shrinking it would bias the dark
     merged *= shrink_s
-    back = np.fft.irfft2(merged, s=(TILE, TILE), axes=(2, 3))  # windowed tiles
+    back = scipy.fft.irfft2(merged, s=(TILE, TILE), axes=(2, 3))  # windowed tiles
     # Overlap-add: tile (i, j)'s quadrant (a, b) lands on block (i + a, j + b) of a grid
     # of half-tile blocks (the windows' shifted copies sum to one).
     blocks = np.zeros((n_ty + 1, n_tx + 1, step, step, c))
