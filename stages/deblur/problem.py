@@ -58,10 +58,10 @@ class Observations:
     stream: StreamTerm | None = None
 
 
-#: Time bins the misfit reads of a capture that keeps its whole measuring stream: four
-#: times the motion estimate's (shorter bins blur less within themselves; ``make bench``'s
+#: Time bins the misfit reads of a capture that keeps its whole measuring stream: twice
+#: the motion estimate's (shorter bins blur less within themselves; ``make bench``'s
 #: bench_fit_bins compares 8, 16 and 32).
-FIT_BINS = 32
+FIT_BINS = 16
 
 
 def has_stream(cap: Capture) -> bool:
