@@ -17,6 +17,9 @@ weights ``c_e`` (Charbonnier on the relative gradient) are re-estimated between 
 cannot explain. ``P_e`` is the data precision of the edge's pixels, so ``lam`` is
 dimensionless: the weight of the prior relative to one pixel's own data, and the
 smoothing is the same at every brightness (a relative, log-like prior suited to HDR).
+The edge weights' scale is ``edge_rel`` (relative), lowered to ``edge_snr`` times a
+pixel's relative shot noise where the pixel gathered enough light for that to be
+smaller, so that low-contrast texture the data resolve is not smoothed away.
 
 Motion. The motion comes from :mod:`stages.deblur.layers` (a still background and
 rigidly translating layers, with occlusion, estimated from all the measuring bins over
@@ -94,6 +97,8 @@ class JointOptions:
     final_cg_iters: int = 15
     lam: float = 0.15
     edge_rel: float = 0.08
+    #: Edge scale in units of a pixel's relative noise, where below ``edge_rel`` (0: off).
+    edge_snr: float = 3.0
     motion_alpha: float = 0.05
     motion_step_max: float = 8.0
     cauchy_k: float = 2.0
@@ -108,15 +113,38 @@ class JointOptions:
     history: list = field(default_factory=list)
 
 
-def _smooth_weights(L: np.ndarray, ref: np.ndarray, prec: np.ndarray, lam: float, edge_rel: float):
-    """Edge weights of the relative smoothness for the x and y differences."""
+#: The smallest relative edge scale of the smoothness (``JointOptions.edge_snr``).
+EDGE_REL_MIN = 0.01
+
+
+def _smooth_weights(
+    L: np.ndarray,
+    ref: np.ndarray,
+    prec: np.ndarray,
+    lam: float,
+    edge_rel: float,
+    edge_snr: float = 0.0,
+):
+    """Edge weights of the relative smoothness for the x and y differences.
+
+    The Charbonnier scale is ``edge_rel`` (relative); with ``edge_snr`` > 0 it falls to
+    ``edge_snr`` times the pixel's relative noise where that is smaller (a well-exposed
+    pixel's low-contrast texture is kept), never below :data:`EDGE_REL_MIN`.
+    """
     gx, gy = grad(L)
     rx = np.maximum(ref, np.roll(ref, -1, axis=1))
     ry = np.maximum(ref, np.roll(ref, -1, axis=0))
     px = np.minimum(prec, np.roll(prec, -1, axis=1))
     py = np.minimum(prec, np.roll(prec, -1, axis=0))
-    cx = 1.0 / np.sqrt(1.0 + (gx / (edge_rel * rx)) ** 2)
-    cy = 1.0 / np.sqrt(1.0 + (gy / (edge_rel * ry)) ** 2)
+    if edge_snr > 0:
+        electrons = np.maximum(prec * ref * ref, 1.0)
+        edge = np.clip(edge_snr / np.sqrt(electrons), EDGE_REL_MIN, edge_rel)
+        ex = np.maximum(edge, np.roll(edge, -1, axis=1))
+        ey = np.maximum(edge, np.roll(edge, -1, axis=0))
+    else:
+        ex = ey = edge_rel
+    cx = 1.0 / np.sqrt(1.0 + (gx / (ex * rx)) ** 2)
+    cy = 1.0 / np.sqrt(1.0 + (gy / (ey * ry)) ** 2)
     sx = lam * px * cx
     sy = lam * py * cy
     sx[:, -1] = 0
@@ -183,7 +211,7 @@ def solve_image(
     # (electrons / rate^2): the prior's weight does not shrink where the data are
     # contaminated by bright light passing by, so the prior decides there.
     prec = (expo / ref.reshape(n, c)).reshape(h, wd, c)
-    sx, sy = _smooth_weights(L.reshape(h, wd, c), ref, prec, opts.lam, opts.edge_rel)
+    sx, sy = _smooth_weights(L.reshape(h, wd, c), ref, prec, opts.lam, opts.edge_rel, opts.edge_snr)
     dsm = np.zeros((h, wd, c))
     dsm += sx
     dsm[:, 1:] += sx[:, :-1]
