@@ -64,16 +64,11 @@ class Observations:
 FIT_BINS = 16
 
 
-def has_stream(cap: Capture) -> bool:
-    """Whether the capture keeps its measuring stream (:attr:`Capture.keeps_stream`)."""
-    return cap.keeps_stream
-
-
 def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -> Observations:
     """Turn a capture into electrons and noise weights (see :class:`Observations`).
 
     A capture with time bins is observed through its bins. One that keeps its whole
-    measuring stream (:func:`has_stream`) is observed through :data:`FIT_BINS` time bins
+    measuring stream (:attr:`Capture.keeps_stream`) is observed through :data:`FIT_BINS` time bins
     of it (sums of its subframes, each bin's variance carrying one read noise per
     subframe), or with ``stream`` through the stream's aligned mean (``stream_src``,
     :mod:`stages.deblur.stream`; experimental: on textured scenes and moving objects it
@@ -94,9 +89,9 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
     wins = vet_windows(cap.T, tf, rig.subframe_s, rig.n_subframes, rig.leakage)
     yb = wb = None
     wins_b: list[list[Window]] = []
-    if use_measure and has_stream(cap) and not stream:
+    if use_measure and cap.keeps_stream and not stream:
         cap = cap.time_bins(FIT_BINS)
-    if use_measure and has_stream(cap):
+    if use_measure and cap.keeps_stream:
         return Observations(
             (h, w, c),
             y.reshape(h * w, c),
