@@ -106,17 +106,27 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
     return suppress_small_motion(vel), "dense"
 
 
-def changing_motion(cap: Capture):
+def changing_motion(cap: Capture, main_only: bool = False):
     """Layers along measured paths when the capture keeps its stream and its motion
-    changes within the frame (:mod:`stages.deblur.layers.paths`), else None."""
+    changes within the frame (:mod:`stages.deblur.layers.paths`), else None. With
+    ``main_only``, only when the path most of the frame follows changes (camera shake:
+    :attr:`~stages.deblur.layers.paths.TilePaths.main_changing`)."""
     if not cap.keeps_stream:
         return None
     from .layers.paths import path_layers, tile_paths
 
     tp = tile_paths(cap.measure, cap.measure_times, cap.rig)
-    if not tp.changing:
+    if not (tp.main_changing if main_only else tp.changing):
         return None
     return path_layers(tp, float(cap.meta.get("integration_s", cap.rig.frame_s)))
+
+
+def _tiled(tile: int | str | None, shape: tuple[int, int]) -> bool:
+    """Whether ``deblur(..., tile=tile)`` solves a frame of ``shape`` in tiles."""
+    from .tiles import resolve_tile
+
+    size = resolve_tile(tile, shape)
+    return size is not None and max(shape) > size
 
 
 def truth_layers(cap: Capture):
@@ -264,7 +274,10 @@ def deblur(
     else:
         if motion_init == "paths":
             layers = changing_motion(cap)
-        if layers is not None and motion_init == "paths":
+        elif motion_init == "layers" and method == "vet" and not _tiled(tile, cap.shape):
+            # (the tiles solve with one velocity per pixel, not along paths)
+            layers = changing_motion(cap, main_only=True)
+        if layers is not None and motion_init in ("paths", "layers"):
             vel0 = layers.velocity[layers.label].astype(np.float32)
             motion_model = "layer-paths"
         else:

@@ -75,10 +75,19 @@ class TilePaths:
     layer_paths: list  # the paths most tiles follow, (G, 2) px each, most followed first
     deviation_px: float  # the largest departure of those from a constant velocity
     stream: tuple | None = None  # (measure, times, log floor): for the short start groups
+    main_deviation_px: float = 0.0  # that of the path most tiles follow
 
     @property
     def changing(self) -> bool:
+        """Some layer's path leaves a constant velocity."""
         return len(self.layer_paths) > 0 and self.deviation_px >= MIN_DEVIATION_PX
+
+    @property
+    def main_changing(self) -> bool:
+        """The path most tiles follow leaves a constant velocity (camera shake): a
+        cautious test, since a minor cluster of tile paths (tiles straddling a moving
+        object's edge) can leave a constant velocity when no layer does."""
+        return len(self.layer_paths) > 0 and self.main_deviation_px >= MIN_DEVIATION_PX
 
 
 def _groups(measure: np.ndarray, times: np.ndarray, rig: RigParams, n_groups: int):
@@ -153,14 +162,15 @@ def tile_paths(measure: np.ndarray, times: np.ndarray, rig: RigParams) -> TilePa
                 paths.append(p)
     arr = np.asarray(paths).reshape(-1, n_g, 2)
     found = _cluster(arr) if n_g >= 3 else []
-    dev = 0.0
+    dev = main_dev = 0.0
     if found:
         lp = np.stack(found)
         t = mids - mids[0]
         # Least-squares constant velocity through the origin, per path and axis.
         v = (lp * t[None, :, None]).sum(axis=1) / max(float((t * t).sum()), 1e-12)
-        dev = float(np.abs(lp - v[:, None, :] * t[None, :, None]).max())
-    return TilePaths(mids, comp, arr, found, dev, (measure, times, floor))
+        per_path = np.abs(lp - v[:, None, :] * t[None, :, None]).max(axis=(1, 2))
+        dev, main_dev = float(per_path.max()), float(per_path[0])
+    return TilePaths(mids, comp, arr, found, dev, (measure, times, floor), main_dev)
 
 
 def _cluster(paths: np.ndarray) -> list[np.ndarray]:
