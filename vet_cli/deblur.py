@@ -61,10 +61,10 @@ Example:
     "--motion-init",
     type=click.Choice(["layers", "paths", "farneback", "dis", "truth", "zero"]),
     default=None,
-    help="Motion estimate: layered (default for --method vet), layers along paths measured "
-    "from the whole measuring stream when the motion changes within the frame (paths, "
-    "experimental), dense Farnebäck (default for --method paper) or DIS flow, the "
-    "simulator's truth, or none.",
+    help="Motion estimate: layered (default for --method vet; along the measured path when "
+    "the whole frame's path changes within it, a camera shake), layers along paths "
+    "whenever some region's path changes (paths, experimental), dense Farnebäck (default "
+    "for --method paper) or DIS flow, the simulator's truth, or none.",
 )
 @click.option(
     "--motion-out",

@@ -203,10 +203,12 @@ def deblur(
         The default joint method or the published one.
     motion_init : {'layers', 'paths', 'farneback', 'dis', 'truth', 'zero'}, optional
         Where the motion starts; default ``layers`` for the default method and Farnebäck
-        (the paper's choice) for the published one. ``paths`` (experimental, a capture
-        that keeps its stream): layers along paths measured from the stream when the
-        motion changes within the frame (:func:`changing_motion`), else ``layers``; its
-        detector also fires on some constant-velocity objects, where it does worse.
+        (the paper's choice) for the published one. ``layers`` on a capture that keeps
+        its stream, solved in one piece, follows layers along paths measured from the
+        stream when the path most of the frame follows changes within the frame (camera
+        shake: :func:`changing_motion` with ``main_only``); ``paths`` (experimental) when
+        any region's does, else ``layers``; its detector also fires on some
+        constant-velocity objects, where it does worse.
     progress : callable, optional
         ``progress(done, total)``.
     options : JointOptions or PaperOptions, optional
