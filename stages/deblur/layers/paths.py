@@ -7,7 +7,7 @@ a burst's alignment measures them (Hasinoff et al. 2016, §4: tiles registered t
 reference frame):
 
 1. **Groups.** The stream's subframes are summed in :data:`GROUPS` consecutive groups
-   (about eight subframes each, enough light to register), log-compressed above the
+   (two or three subframes each: a finely sampled path), log-compressed above the
    read noise.
 2. **Tile paths.** Overlapping tiles of :data:`TILE_PX` pixels are registered from the
    first group to every later one by normalised cross-correlation (OpenCV
@@ -46,7 +46,7 @@ from ..operator import Layers
 log = logging.getLogger(__name__)
 
 #: Groups of consecutive subframes registered.
-GROUPS = 16
+GROUPS = 48
 #: Tile side and stride of the tile registration, pixels.
 TILE_PX = 48
 #: Correlation below which a tile's registration is not trusted.
