@@ -291,7 +291,7 @@ def burst_hdr(cap: Capture, progress: Callable[[int, int], None] | None = None) 
     units, mask 0 everywhere, 3 where the merged rate is below one electron per frame of
     the measurement sensor's subframes, 2 where the reference clipped)."""
     from .errors import InputError
-    from .hdr_static import rate_to_output_units
+    from .hdr_static import reconstruction
 
     if cap.measure is None or cap.measure_times is None or cap.measure.shape[0] < 2:
         raise InputError("a burst merge needs a capture with two or more measuring images")
@@ -307,24 +307,12 @@ def burst_hdr(cap: Capture, progress: Callable[[int, int], None] | None = None) 
     clipped = (np.asarray(cap.measure[0], np.float32) >= np.float32(rig.saturation_dn)).any(axis=2)
     mask[clipped] = 2
     rate = np.maximum(rate, np.float32(floor))
-    radiance, units = rate_to_output_units(cap, rate)
-    meta = {
-        "units": units,
-        "radiance_scale": cap.radiance_scale,
-        "rig": rig.to_dict(),
-        "method": "burst-merge",
-        "source_method": cap.method,
-        "motion": cap.meta.get("motion"),
-        "scene": cap.meta.get("scene"),
-        "burst": dict(info, reference="measuring image 0", images=int(n)),
-        "runtime_s": round(time.perf_counter() - t0, 3),
-        "provenance": list(cap.meta.get("provenance", []))
-        + [provenance_entry("burst-merge", method="hasinoff2016")],
-    }
-    return HDRImage(
-        radiance=radiance.astype(np.float32),
-        channels=list(cap.channels),
-        meta=meta,
-        mask=mask,
-        exposure_time=cap.T,
+    return reconstruction(
+        cap,
+        rate,
+        mask,
+        "burst-merge",
+        provenance_entry("burst-merge", method="hasinoff2016"),
+        burst=dict(info, reference="measuring image 0", images=int(n)),
+        runtime_s=round(time.perf_counter() - t0, 3),
     )

@@ -56,6 +56,40 @@ def rate_to_output_units(cap: Capture, rate_e_s: np.ndarray) -> tuple[np.ndarray
     return rate_e_s * np.float32(cap.rig.gain_dn_per_e), "DN/s"
 
 
+def reconstruction(
+    cap: Capture,
+    rate_e_s: np.ndarray,
+    mask: np.ndarray,
+    method: str,
+    step: dict,
+    **meta: object,
+) -> HDRImage:
+    """A capture's reconstruction as an HDR image: ``rate_e_s`` (H, W, C) electrons/s at
+    the VET sensor in the output units (:func:`rate_to_output_units`), ``mask`` (H, W)
+    uint8, the capture's T, and the metadata every reconstruction carries (units, radiance
+    scale, rig, ``method``, the capture's method, motion and scene, the provenance chain
+    extended by ``step``), plus ``meta``."""
+    radiance, units = rate_to_output_units(cap, rate_e_s.astype(np.float32))
+    out = {
+        "units": units,
+        "radiance_scale": cap.radiance_scale,
+        "rig": cap.rig.to_dict(),
+        "method": method,
+        "source_method": cap.method,
+        "motion": cap.meta.get("motion"),
+        "scene": cap.meta.get("scene"),
+        **meta,
+        "provenance": list(cap.meta.get("provenance", [])) + [step],
+    }
+    return HDRImage(
+        radiance=radiance.astype(np.float32),
+        channels=list(cap.channels),
+        meta=out,
+        mask=mask,
+        exposure_time=cap.T,
+    )
+
+
 def hdr_static(cap: Capture) -> HDRImage:
     """Invert a capture assuming a still scene.
 
@@ -105,24 +139,8 @@ def hdr_static(cap: Capture) -> HDRImage:
     mask[low] = 3
     rate = np.maximum(rate, floor_rate)
 
-    radiance, units = rate_to_output_units(cap, rate.astype(np.float32))
-    meta = {
-        "units": units,
-        "radiance_scale": cap.radiance_scale,
-        "rig": rig.to_dict(),
-        "method": "vet-static" if cap.method == "vet" else cap.method,
-        "source_method": cap.method,
-        "motion": cap.meta.get("motion"),
-        "scene": cap.meta.get("scene"),
-        "provenance": list(cap.meta.get("provenance", [])) + [provenance_entry("hdr-static")],
-    }
-    return HDRImage(
-        radiance=radiance.astype(np.float32),
-        channels=list(cap.channels),
-        meta=meta,
-        mask=mask,
-        exposure_time=cap.T,
-    )
+    method = "vet-static" if cap.method == "vet" else cap.method
+    return reconstruction(cap, rate, mask, method, provenance_entry("hdr-static"))
 
 
 def _rate_from_measure(

@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import InputError
 from ..formats.capture import Capture, provenance_entry
 from ..formats.hdr import HDRImage
-from ..hdr_static import hdr_static, rate_to_output_units
+from ..hdr_static import hdr_static, reconstruction
 
 log = logging.getLogger(__name__)
 
@@ -299,14 +299,12 @@ def deblur(
     start = (L_init, vel0, cap.T, tf, rig.subframe_s, rig.leakage)
     if method != "vet":
         tile = None
-    from .tiles import resolve_tile
-
-    tile = resolve_tile(tile, cap.shape)
-    tiled = tile is not None and max(cap.shape) > tile
+    tiled = _tiled(tile, cap.shape)
     if tiled:
         from .joint import JointOptions
-        from .tiles import deblur_in_tiles
+        from .tiles import deblur_in_tiles, resolve_tile
 
+        tile = resolve_tile(tile, cap.shape)
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
@@ -358,22 +356,15 @@ def deblur(
     # Pixels hdr-static could only bound keep its value (the deblur has no data there).
     L = np.where(bound_only[..., None], np.maximum(L, L_init), L)
     mask = deblur_mask(static.mask, L, L_init)
-    radiance, units = rate_to_output_units(cap, L.astype(np.float32))
-    meta = dict(static.meta)
-    meta.update(
-        method=name,
+    image = reconstruction(
+        cap,
+        L,
+        mask,
+        name,
+        provenance_entry("deblur", method=method, motion_init=motion_init, **params),
         motion_init=motion_init,
         motion_model=motion_model,
         runtime_s=round(time.perf_counter() - t_start, 3),
-        provenance=list(cap.meta.get("provenance", []))
-        + [provenance_entry("deblur", method=method, motion_init=motion_init, **params)],
+        **extra,
     )
-    meta.update(extra)
-    meta["units"] = units
-    return HDRImage(
-        radiance=radiance.astype(np.float32),
-        channels=list(cap.channels),
-        meta=meta,
-        mask=mask,
-        exposure_time=cap.T,
-    ), vel
+    return image, vel

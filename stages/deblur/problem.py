@@ -111,9 +111,6 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
         nb = cap.measure.shape[0]
         dur = np.diff(cap.measure_times, axis=1)[:, 0]
         n_sub = np.maximum(np.rint(dur / rig.subframe_s), 1)
-        # A bin's shot noise from its count smoothed over 3 x 3 pixels, not from the
-        # pixel's own count: weights from each noisy count favour the low ones, a bias
-        # that grows as bins get shorter.
         import cv2
 
         # One bin at a time into float32 (B H W, C): no float64 copy of all the bins.
@@ -122,6 +119,9 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
         for b in range(nb):
             rows = slice(b * h * w, (b + 1) * h * w)
             eb = cap.measure[b].astype(np.float64) / g
+            # Shot noise from the count smoothed over 3 x 3 pixels, not the pixel's own:
+            # weights from each noisy count favour the low ones, a bias that grows as
+            # bins get shorter.
             wbb = cv2.blur(np.maximum(eb, 0), (3, 3), borderType=cv2.BORDER_REPLICATE)
             wbb = wbb.reshape(eb.shape)  # (cv2 drops a single channel's axis)
             wbb += n_sub[b] * (rig.read_noise_e**2 + q)
