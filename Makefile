@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow fuzz bench evaluate-shared evaluate-exposure batch-acceptance lint format sample-data test-hardware test-tools sample-hdr clean
+.PHONY: demo test test-slow fuzz bench evaluate-shared evaluate-stream evaluate-exposure batch-acceptance lint format sample-data test-hardware test-tools sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -67,6 +67,12 @@ bench: $(STAMP)
 # and writes eval_out_nN/.
 evaluate-shared: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.evaluate_shared $(if $(REACH),eval_out_n$(REACH) --reach-subframes $(REACH),eval_out)
+
+# Issue 18's acceptance sweep (~20 min): default deblur against the burst merge of its own
+# measuring stream, hdr-static and the oracle, every shared scene at 320x240, with
+# translate:30,0, an object on dark content, rotate:4 and shake:4; table and tally.
+evaluate-stream: $(STAMP)
+	$(BIN)/python -m tests.benchmarks.evaluate_stream eval_stream
 
 # The comparison methods alone on the same runs: the scenes dimmed 1-16x (~12 min), then
 # DESIGN's brightness with seeds 0-4 (~12 min).

@@ -376,16 +376,17 @@ def test_the_layer_cost_of_noise_does_not_depend_on_the_shift(shift):
     assert moved == pytest.approx(still, rel=0.06)
 
 
-def test_deblur_of_a_rotation_starts_from_dense_flow_and_beats_hdr_static():
+def test_deblur_of_a_rotation_leaves_the_layers_and_beats_hdr_static():
     # The layered start of a rotation is the one translation that fits best; deblurring
     # along it was worse than not deblurring (dark RMS over the pixels vet evaluate
     # scores: 0.709 stops against hdr-static's 0.633). The model check hands the start
-    # to dense flow: 0.508.
+    # to dense flow (0.508), which one affine field explains (0.518 at this small size;
+    # tests/test_deblur_affine.py for where the affine field does better).
     from stages.metrics import measurable_floor
 
     cap = _vet(builtin_interior(160, 128), "rotate:6", seed=0)
     img, vel = deblur(cap)
-    assert img.meta["motion_model"] == "dense" and img.meta["motion_init"] == "layers"
+    assert img.meta["motion_model"] == "affine" and img.meta["motion_init"] == "layers"
     rig = cap.rig
     floor = measurable_floor(rig, cap.radiance_scale)
 

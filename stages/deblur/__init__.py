@@ -92,6 +92,15 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
         est = estimate_layers(cap)
         if est.check is None or est.check.fits:
             return est.velocity, "layers"
+        from .affine import AFFINE_MISS_SHARE
+
+        if est.check.affine is not None and est.check.affine_share <= AFFINE_MISS_SHARE:
+            log.info(
+                "deblur: the motion is one affine field (it misses %.0f%% of what a dense"
+                " field explains); refining its six parameters",
+                100 * max(est.check.affine_share, 0.0),
+            )
+            return est.check.affine, "affine"
         log.info(
             "deblur: the motion is not layered (a dense field explains %.0f%% of what the"
             " layers miss); starting from dense flow",
@@ -321,6 +330,8 @@ def deblur(
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
+        if motion_model == "affine" and motion is None:  # (a given motion, a tile's: kept)
+            opts = replace(opts, affine_motion=True)
         obs = observations(cap, use_measure=opts.use_measure, stream=opts.stream_fit)
         report: dict = {}
         L, vel = deblur_joint(
@@ -330,7 +341,7 @@ def deblur(
             opts,
             progress=solve_progress,
             truth_cb=truth_cb,
-            still=~np.any(vel0 != 0, axis=2) if motion_model != "truth" else None,
+            still=~np.any(vel0 != 0, axis=2) if motion_model not in ("truth", "affine") else None,
             report=report,
             layers=layers,
         )

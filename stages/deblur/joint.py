@@ -103,6 +103,14 @@ class JointOptions:
     motion_step_max: float = 8.0
     cauchy_k: float = 2.0
     update_motion: bool = False
+    #: Refine a global affine motion (model ``affine``) by Gauss-Newton steps on its six
+    #: parameters between image steps (:func:`stages.deblur.affine.affine_step`).
+    affine_motion: bool = False
+    #: Outer steps when the affine motion is refined (each after the first refines it).
+    affine_outer: int = 5
+    #: Scale of each affine Gauss-Newton step (the image step absorbs part of a motion
+    #: error, so a plain step falls short).
+    affine_gain: float = 3.0
     use_measure: bool = True
     #: Fit a stream capture through its aligned mean, not time bins (experimental).
     stream_fit: bool = False
@@ -344,7 +352,14 @@ def _coarse_start(
     sat_c = block_sum(saturated.astype(np.int32)) > 0
     # The coarse level only starts the moving pixels: still ones are fused, if asked, at
     # full resolution.
-    copts = replace(opts, levels=opts.levels - 1, history=[], update_motion=False, fuse_still=False)
+    copts = replace(
+        opts,
+        levels=opts.levels - 1,
+        history=[],
+        update_motion=False,
+        affine_motion=False,
+        fuse_still=False,
+    )
     L_c, _ = deblur_joint(
         cobs,
         L_c0.astype(np.float32),
@@ -429,7 +444,7 @@ def deblur_joint(
     start = None
     if report is not None:
         report["still_pixels"] = "hdr-static"
-    total = opts.outer + 1
+    total = (opts.affine_outer if opts.affine_motion else opts.outer) + 1
     coarse = opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0)
     # Progress counts the coarse start as `total` steps (whatever its own levels), then
     # the fine solve's steps.
@@ -456,6 +471,7 @@ def deblur_joint(
     floor = np.broadcast_to(1.0 / expo, (n, c))
     iters_done = 0
     built_for = None
+    affine_state: dict = {}
     for it in range(total):
         t0 = time.perf_counter()
         if built_for is None or not np.array_equal(built_for, vel):
@@ -530,7 +546,11 @@ def deblur_joint(
         if S is not None:
             ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
         ts = time.perf_counter()
-        if not last and opts.update_motion:
+        if not last and opts.affine_motion and layers is None:
+            from .affine import affine_step
+
+            vel = affine_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts, affine_state)
+        elif not last and opts.update_motion:
             from .motion_steps import motion_step
 
             vel = motion_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts)

@@ -12,7 +12,7 @@ from .operator import sample_trajectories
 from .problem import Observations, laplacian
 
 
-def _motion_normal_terms(
+def motion_terms(
     obs: Observations,
     L: np.ndarray,
     vel: np.ndarray,
@@ -84,9 +84,7 @@ def motion_step_gradient(
     leakage: float,
 ) -> np.ndarray:
     """Gradient of ``sum w r^2`` (VET image only) w.r.t. the velocity, ``(H, W, 2)``."""
-    _hxx, _hxy, _hyy, bx, by = _motion_normal_terms(
-        obs, L, vel, r, w, None, None, T, frame_s, leakage
-    )
+    _hxx, _hxy, _hyy, bx, by = motion_terms(obs, L, vel, r, w, None, None, T, frame_s, leakage)
     return 2 * np.stack([bx, by], axis=-1)
 
 
@@ -108,7 +106,7 @@ def motion_step(
     import scipy.sparse.linalg as spla
 
     h, wd, _c = obs.shape
-    hxx, hxy, hyy, bx, by = _motion_normal_terms(obs, L, vel, r, w, rb, wb, T, frame_s, leakage)
+    hxx, hxy, hyy, bx, by = motion_terms(obs, L, vel, r, w, rb, wb, T, frame_s, leakage)
     tr = hxx + hyy
     scale = float(np.median(tr[tr > 0])) if np.any(tr > 0) else 1.0
     alpha = opts.motion_alpha * scale

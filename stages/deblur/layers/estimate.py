@@ -110,6 +110,11 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
         [cv2.resize(vel_d[..., 0] / sx, (w, h)), cv2.resize(vel_d[..., 1] / sy, (w, h))], -1
     )
     confidence = cv2.resize(conf, (w, h))
+    if check.affine is not None:  # (affine on the working grid: affine on the full one)
+        aff = check.affine
+        check.affine = np.stack(
+            [cv2.resize(aff[..., 0] / sx, (w, h)), cv2.resize(aff[..., 1] / sy, (w, h))], -1
+        ).astype(np.float32)
     log.debug(
         "layers: velocities %s, shares %s",
         vels.tolist(),

@@ -34,6 +34,10 @@ class ModelCheck:
     dense: float  # the smoothed dense long-baseline field
     missed_share: float  # (layered - dense) / (zero - dense): what the layers miss
     fits: bool  # the layered model stands (else a dense field describes the motion)
+    #: Where the layers do not fit: the affine field fitted to the dense one (H, W, 2),
+    #: and what it misses of what the dense field explains, as ``missed_share``.
+    affine: np.ndarray | None = None
+    affine_share: float = float("nan")
 
 
 def visible_points(label: np.ndarray, vels: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -87,6 +91,9 @@ def layered_model_check(
     bench_motion_models) prints the share for the shared scenes' still captures,
     translations, objects and rotations.
 
+    Where the layers do not fit, the affine field fitted to the smoothed dense one
+    (confidence-weighted, robust) is scored too (``affine``, ``affine_share``).
+
     The layered field is scored with its occlusions (a point hidden behind a layer in
     front of it is no evidence, :func:`visible_points`), as the blur operator models them; the
     dense field, which cannot describe them, is scored on every bin.
@@ -118,4 +125,10 @@ def layered_model_check(
     gain = zero - den_cost
     share = (lay - den_cost) / gain if gain > 0 else 0.0
     fits = not (gain >= LAYERED_MIN_GAIN and share >= LAYERED_MISS_SHARE)
-    return ModelCheck(zero, lay, den_cost, float(share), fits)
+    check = ModelCheck(zero, lay, den_cost, float(share), fits)
+    if not fits:  # is it one affine field (a rotation, a zoom)?
+        from ..affine import fit_affine
+
+        check.affine = fit_affine(smooth, float(np.max(centres)), weights=wt).field
+        check.affine_share = float((cost(check.affine) - den_cost) / gain)
+    return check

@@ -1,0 +1,126 @@
+"""Issue 18 acceptance sweep: the default deblur against the burst merge of its own
+measuring stream and hdr-static, on every scene of ../shared/data/hdr.
+
+Motions: ``translate:30,0``, a quarter-frame object on the scene's dark content moving
+at (40, 10) px/s (the placement of :func:`tests.benchmarks.evaluate_shared.object_rectangle`),
+``rotate:4`` and a camera shake ``shake:4`` (a trajectory whose velocity changes within
+the frame). Each run is ``vet evaluate --methods vet-deblur,burst-merge,vet-static,
+vet-deblur-oracle`` at SIZE (default 320x240).
+
+Printed: one row per run with the all-pixel median and RMS error (stops) of each method,
+then the tally of the acceptance points: deblur's median and RMS at most burst-merge's
+and vet-static's on every run; the geometric mean, over the runs with dark pixels, of
+deblur's median and RMS over the better of the two (at most 0.85); deblur's RMS within
+1.1x of the oracle's (deblur along the true motion).
+
+Run: python -m tests.benchmarks.evaluate_stream OUT_DIR [--size WxH] [--summary-only]
+[SCENE ...] (`make evaluate-stream` writes eval_stream/). Skips cleanly when ../shared
+is absent.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+from tests.benchmarks.common import SHARED_HDR
+from tests.benchmarks.evaluate_shared import (
+    SCENES,
+    object_rectangle,
+    option_value,
+    read_results,
+    run_evaluate,
+)
+
+METHODS = "vet-deblur,burst-merge,vet-static,vet-deblur-oracle"
+
+
+def motions(path: Path, w: int, h: int) -> dict[str, str]:
+    """The sweep's motions of one scene, by tag (module docstring)."""
+    return {
+        "translate": "translate:30,0",
+        "object-dark": "object:{},{},{},{}:40,10".format(*object_rectangle(path, w, h)),
+        "rotate": "rotate:4",
+        "shake": "shake:4",
+    }
+
+
+def figures(t: dict[str, dict[str, str]]) -> dict[str, float]:
+    """One run's all-pixel median and RMS per method, and its dark-pixel count."""
+    out: dict[str, float] = {}
+    for m, key in (("vet-deblur", "d"), ("burst-merge", "b"), ("vet-static", "s")):
+        for col in ("median", "rms"):
+            try:
+                out[f"{key} {col}"] = float(t[m][f"all_{col}"])
+            except (KeyError, ValueError):
+                out[f"{key} {col}"] = float("nan")
+    try:
+        out["o rms"] = float(t["vet-deblur-oracle"]["all_rms"])
+    except (KeyError, ValueError):
+        out["o rms"] = float("nan")
+    out["n dark"] = float(t["vet-deblur"].get("n_dark", 0) or 0)
+    return out
+
+
+def geomean(values: list[float]) -> float:
+    return math.exp(sum(math.log(v) for v in values) / len(values)) if values else float("nan")
+
+
+def main(argv: list[str]) -> int:
+    if not SHARED_HDR.is_dir():
+        print("evaluate-stream: ../shared/data/hdr absent, skipped")
+        return 0
+    out = Path(argv[0]) if argv and not argv[0].startswith("-") else Path("eval_stream")
+    w, h = (int(v) for v in option_value(argv, "--size", "320x240").split("x"))
+    names = [a for a in argv[1:] if a in SCENES] or SCENES
+    out.mkdir(exist_ok=True)
+    rows = []
+    for name in names:
+        path = SHARED_HDR / f"{name}.exr"
+        for tag, spec in motions(path, w, h).items():
+            folder = out / f"{name}_{tag}"
+            if "--summary-only" in argv:
+                table = read_results(folder)
+            else:
+                table = run_evaluate(path, spec, (w, h), folder, "--methods", METHODS)
+            if table is not None:
+                rows.append((name, tag, figures(table)))
+    print(
+        f"\nall-pixel error in stops, median / RMS ({w}x{h}); oracle: deblur along the true motion"
+    )
+    print(
+        "| scene | motion | deblur | burst-merge | vet-static | oracle RMS | deblur/oracle |"
+        " <= burst | <= static |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    ok_b = ok_s = ok_o = 0
+    ratios_med: list[float] = []
+    ratios_rms: list[float] = []
+    for name, tag, f in rows:
+        vb = f["d median"] <= f["b median"] and f["d rms"] <= f["b rms"]
+        vs = f["d median"] <= f["s median"] and f["d rms"] <= f["s rms"]
+        ratio = f["d rms"] / f["o rms"]
+        ok_b, ok_s, ok_o = ok_b + vb, ok_s + vs, ok_o + (ratio <= 1.1)
+        if f["n dark"] > 0:
+            ratios_med.append(f["d median"] / min(f["b median"], f["s median"]))
+            ratios_rms.append(f["d rms"] / min(f["b rms"], f["s rms"]))
+        print(
+            f"| {name} | {tag} | {f['d median']:.4f} / {f['d rms']:.4f} |"
+            f" {f['b median']:.4f} / {f['b rms']:.4f} | {f['s median']:.4f} / {f['s rms']:.4f} |"
+            f" {f['o rms']:.4f} | {ratio:.2f} | {'yes' if vb else 'NO'} | {'yes' if vs else 'NO'} |"
+        )
+    n = len(rows)
+    print(f"\ndeblur median and RMS <= burst-merge's: {ok_b} of {n} runs")
+    print(f"deblur median and RMS <= vet-static's: {ok_s} of {n} runs")
+    print(
+        f"geometric mean over the {len(ratios_rms)} runs with dark pixels of deblur / the better"
+        f" of burst-merge and vet-static: median {geomean(ratios_med):.3f},"
+        f" RMS {geomean(ratios_rms):.3f} (acceptance: at most 0.85)"
+    )
+    print(f"deblur RMS within 1.1x of the oracle's: {ok_o} of {n} runs")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
