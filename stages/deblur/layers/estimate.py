@@ -103,7 +103,7 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
     )
     vels = np.array([[v[0] / sx, v[1] / sy] for v in cands], np.float32)
     lab_full, vels = kept_layers(lab_full, vels)
-    if len(vels) > 1 and (sx < 1.0 or sy < 1.0):
+    if len(vels) > 1:  # (also on a frame no larger than the working grid: pooled labels)
         lab_full, vels = kept_layers(refine_boundaries(lum, noise, lab_full, vels, centres), vels)
     velocity = vels[lab_full]
     dense = np.stack(
