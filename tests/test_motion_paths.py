@@ -192,3 +192,29 @@ def test_default_deblur_follows_a_camera_shake():
     tp = tile_paths(obj.measure, obj.measure_times, rig)
     assert not tp.main_changing
     assert deblur(obj)[0].meta["motion_model"] == "layers"
+
+
+def test_the_measured_camera_path_is_refined_on_the_misfit(shared_hdr):
+    """The path registered from the stream carries each group's noise; Gauss-Newton steps
+    on its knots between image steps bring the deblur closer to the oracle's: Cannon
+    shake:4 at 240x180, all-pixel RMS 0.045 refined against 0.056 as measured (oracle
+    0.026)."""
+    from stages.deblur import deblur
+    from stages.deblur.joint import JointOptions
+    from stages.metrics import measurable_floor, stops_error
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    rig = RigParams(sensor_size=(240, 180))
+    scene = load_scene(str(shared_hdr / "Cannon.exr"), (240, 180))
+    cap = simulate(scene, parse_motion("shake:4"), rig, seed=0, methods=["vet"])["vet"]
+    floor = measurable_floor(rig, cap.radiance_scale)
+
+    def rms(img):
+        return stops_error(img.radiance, cap.truth, cap.T, rig.frame_s, floor=floor)["all"]["rms"]
+
+    refined, _ = deblur(cap)
+    measured, _ = deblur(cap, options=JointOptions(path_motion=False))
+    assert refined.meta["motion_model"] == measured.meta["motion_model"] == "layer-paths"
+    assert rms(refined) < 0.9 * rms(measured)

@@ -330,8 +330,13 @@ def deblur(
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
-        if motion_model == "affine" and motion is None:  # (a given motion, a tile's: kept)
-            opts = replace(opts, affine_motion=True)
+        # The motion estimated here is refined as the model allows; a given motion (the
+        # truth, a tile's share of a frame's) is kept.
+        opts = replace(
+            opts,
+            affine_motion=opts.affine_motion and motion is None and motion_model == "affine",
+            path_motion=opts.path_motion and motion is None and motion_model == "layer-paths",
+        )
         obs = observations(cap, use_measure=opts.use_measure, stream=opts.stream_fit)
         report: dict = {}
         L, vel = deblur_joint(

@@ -30,9 +30,6 @@ import numpy as np
 #: layered_model_check`, scored as the layers are).
 AFFINE_MISS_SHARE = 0.2
 
-#: Largest gain of an affine Gauss-Newton step (:func:`affine_step`).
-MAX_GAIN = 20.0
-
 #: Largest distance (px over the frame) between the flow and the fitted field counted
 #: as agreeing.
 FIT_TOL_PX = 1.0
@@ -111,18 +108,11 @@ def affine_step(
     Takes the per-pixel normal terms of :func:`stages.deblur.motion_steps.motion_terms`
     (the misfit's Jacobian in each pixel's velocity, evaluated along its integration
     paths) and sums them through the affine basis: ``N = sum P^T H_x P``, ``g = sum P^T
-    b_x``; the step is ``-gain N^-1 g`` (Levenberg damping 1e-3 of the diagonal), added to
+    b_x``; the step (:func:`stages.deblur.motion_steps.scaled_step`, from
+    ``opts.affine_gain``; ``state`` a dict kept between the calls of one solve) is added to
     ``vel``, which must be affine. Returns the new ``(H, W, 2)`` float32 field.
-
-    ``gain`` starts at ``opts.affine_gain``. ``N`` is the misfit's curvature with the
-    image held fixed; the image re-solved between steps absorbs part of each motion error,
-    so the curvature that matters (of the misfit minimised over the image) is lower.
-    With ``state`` (a dict kept between the calls of one solve) the gain of later steps
-    is that ratio as measured along the previous step ``s``: ``s^T N s / s^T (g - g')``
-    (a secant estimate, kept within [1, :data:`MAX_GAIN`]; the previous gain where the
-    gradient did not turn).
     """
-    from .motion_steps import motion_terms
+    from .motion_steps import motion_terms, scaled_step
 
     h, wd = vel.shape[:2]
     hxx, hxy, hyy, bx, by = (
@@ -135,16 +125,5 @@ def affine_step(
         normal[3 * i : 3 * i + 3, 3 * j : 3 * j + 3] = blk
         normal[3 * j : 3 * j + 3, 3 * i : 3 * i + 3] = blk.T
     grad = np.concatenate([p.T @ bx, p.T @ by])
-    normal += 1e-3 * np.diag(np.diag(normal)) + 1e-12 * np.eye(6)
-    state = {} if state is None else state
-    gain = float(state.get("gain", opts.affine_gain))
-    if "step" in state:
-        s_prev = state["step"]
-        turn = float(s_prev @ (grad - state["grad"]))
-        if turn > 0:
-            gain = float(np.clip((s_prev @ normal @ s_prev) / turn, 1.0, MAX_GAIN))
-        else:  # the gradient did not turn along the last step: it fell short
-            gain = min(2.0 * gain, MAX_GAIN)
-    step = -gain * np.linalg.solve(normal, grad)
-    state.update(step=step, grad=grad, gain=gain)
+    step = scaled_step(normal, grad, {} if state is None else state, opts.affine_gain)
     return (vel + affine_field(step, (h, wd))).astype(np.float32)

@@ -104,13 +104,18 @@ class JointOptions:
     cauchy_k: float = 2.0
     update_motion: bool = False
     #: Refine a global affine motion (model ``affine``) by Gauss-Newton steps on its six
-    #: parameters between image steps (:func:`stages.deblur.affine.affine_step`).
-    affine_motion: bool = False
+    #: parameters between image steps (:func:`stages.deblur.affine.affine_step`);
+    #: :func:`stages.deblur.deblur` turns it off for other models and given motions.
+    affine_motion: bool = True
     #: Outer steps when the affine motion is refined (each after the first refines it).
     affine_outer: int = 5
     #: Scale of each affine Gauss-Newton step (the image step absorbs part of a motion
     #: error, so a plain step falls short).
     affine_gain: float = 3.0
+    #: Refine a camera path (one layer along a trajectory, model ``layer-paths``) by a
+    #: Gauss-Newton step on its knots between image steps
+    #: (:func:`stages.deblur.path_steps.path_step`); off as ``affine_motion`` is.
+    path_motion: bool = True
     use_measure: bool = True
     #: Fit a stream capture through its aligned mean, not time bins (experimental).
     stream_fit: bool = False
@@ -358,6 +363,7 @@ def _coarse_start(
         history=[],
         update_motion=False,
         affine_motion=False,
+        path_motion=False,
         fuse_still=False,
     )
     L_c, _ = deblur_joint(
@@ -444,6 +450,12 @@ def deblur_joint(
     start = None
     if report is not None:
         report["still_pixels"] = "hdr-static"
+    if opts.path_motion:
+        from .path_steps import single_path
+
+        refine_path = single_path(layers)
+    else:
+        refine_path = False
     total = (opts.affine_outer if opts.affine_motion else opts.outer) + 1
     coarse = opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0)
     # Progress counts the coarse start as `total` steps (whatever its own levels), then
@@ -470,11 +482,11 @@ def deblur_joint(
     expo = np.maximum(T, leakage * frame_s + (1 - leakage) * T).reshape(n, 1)
     floor = np.broadcast_to(1.0 / expo, (n, c))
     iters_done = 0
-    built_for = None
+    built_for = built_layers = None
     affine_state: dict = {}
     for it in range(total):
         t0 = time.perf_counter()
-        if built_for is None or not np.array_equal(built_for, vel):
+        if built_for is None or not np.array_equal(built_for, vel) or layers is not built_layers:
             A, Ab = build_operators(
                 obs, vel, step_px=opts.step_px, subframe_s=subframe_s, layers=layers
             )
@@ -483,6 +495,7 @@ def deblur_joint(
             S = obs.stream
             free = moving_support(A, Ab, S)
             built_for = vel.copy()
+            built_layers = layers
             # Preconditioner from the noise weights (the robust reweighting only lowers
             # them; the preconditioner need not follow exactly).
             data_diag = _diag_AtWA(A, obs.w)
@@ -546,7 +559,12 @@ def deblur_joint(
         if S is not None:
             ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
         ts = time.perf_counter()
-        if not last and opts.affine_motion and layers is None:
+        if not last and refine_path:
+            from .path_steps import path_step
+
+            layers = path_step(obs, L, layers, r, w, rb, wb, frame_s)
+            vel = layers.velocity[layers.label].astype(np.float32)
+        elif not last and opts.affine_motion and layers is None:
             from .affine import affine_step
 
             vel = affine_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts, affine_state)

@@ -1,6 +1,7 @@
 """Gauss-Newton steps on a dense velocity field for the deblur (``update_motion``) and
 the gradient the published method descends: the misfit's derivatives in the velocity,
-evaluated matrix-free along the integration paths."""
+evaluated matrix-free along the integration paths; and the scaled step that the
+parametric motions (:mod:`stages.deblur.affine`, :mod:`stages.deblur.path_steps`) take."""
 
 from __future__ import annotations
 
@@ -71,6 +72,35 @@ def motion_terms(
             wgt = np.full((k, 1, 1), frac * (t1 - t0) / k)
             accumulate(tb, wgt, rb4[b], wb4[b])
     return hxx, hxy, hyy, bx, by
+
+
+#: Largest gain of a parametric Gauss-Newton step (:func:`scaled_step`).
+MAX_GAIN = 20.0
+
+
+def scaled_step(normal: np.ndarray, grad: np.ndarray, state: dict, gain0: float) -> np.ndarray:
+    """A Gauss-Newton step ``-gain N^-1 g`` on a few motion parameters, ``N`` (P, P) the
+    misfit's curvature with the image held fixed and ``g`` (P,) its gradient.
+
+    The image re-solved between steps absorbs part of each motion error, so the curvature
+    that matters (of the misfit minimised over the image) is lower than ``N``'s and a
+    plain step falls short. ``gain`` starts at ``gain0``; later steps measure the ratio
+    along the previous step ``s`` (kept in ``state``, a dict kept between the calls of one
+    solve): ``s^T N s / s^T (g - g')`` (a secant estimate, within [1, :data:`MAX_GAIN`]),
+    and double it where the gradient did not turn. Levenberg damping 1e-3 of the diagonal.
+    """
+    normal = normal + 1e-3 * np.diag(np.diag(normal)) + 1e-12 * np.eye(len(grad))
+    gain = float(state.get("gain", gain0))
+    if "step" in state and len(state["step"]) == len(grad):
+        s_prev = state["step"]
+        turn = float(s_prev @ (grad - state["grad"]))
+        if turn > 0:
+            gain = float(np.clip((s_prev @ normal @ s_prev) / turn, 1.0, MAX_GAIN))
+        else:  # the gradient did not turn along the last step: it fell short
+            gain = min(2.0 * gain, MAX_GAIN)
+    step = -gain * np.linalg.solve(normal, grad)
+    state.update(step=step, grad=grad, gain=gain)
+    return step
 
 
 def motion_step_gradient(
