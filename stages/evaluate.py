@@ -83,14 +83,15 @@ def run_evaluation(
     rows: tuple[str, ...] = ROWS,
     progress: Callable[[str], None] | None = None,
     rig_changes: dict[str, Any] | None = None,
+    rig_profile: str = "ideal",
     scale: float | None = None,
     reach_subframes: float = 1.0,
     on_step: Callable[[int, int], None] | None = None,
 ) -> Evaluation:
     """Simulate, reconstruct and score the methods in ``rows`` (module docstring).
 
-    ``rig_changes`` are :class:`~stages.rig.RigParams` fields that differ from its
-    defaults; ``scale`` and ``reach_subframes`` set the radiance scale as in
+    ``rig_changes`` are :class:`~stages.rig.RigParams` fields that differ from the
+    rig of ``rig_profile`` (:func:`stages.optics.rig_profile`); ``scale`` and ``reach_subframes`` set the radiance scale as in
     :func:`stages.simulate.simulate`. Only the comparison captures that ``rows`` needs
     are rendered; the VET capture always is, since it defines the dark/bright split.
     ``progress(message)`` names each part as it starts (the simulation, then one per
@@ -102,7 +103,6 @@ def run_evaluation(
     from .hdr_static import hdr_static
     from .metrics import measurable_floor, stops_error
     from .motion import parse_motion
-    from .rig import RigParams
     from .scenes import load_scene
     from .simulate import simulate
 
@@ -121,7 +121,9 @@ def run_evaluation(
     h, w = scene.radiance.shape[:2]
     motion = parse_motion(motion_spec)
     changes = dict(rig_changes or {})
-    rig = RigParams(**{**changes, "sensor_size": (w, h)})
+    from .optics import rig_profile as make_rig
+
+    rig = make_rig(rig_profile, (w, h), **changes)
     renders = ["vet"] + [m for m in ("long", "short", "adaptive-attenuation") if m in rows]
     step(0, units)
     say(f"simulating {w}x{h} {motion.spec}")

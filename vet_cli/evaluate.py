@@ -7,7 +7,14 @@ import click
 from stages.evaluate import ROWS
 
 from ._common import Progress, command, log, verbosity_options
-from .options import rig_options, rig_overrides, scale_choice, scale_options
+from .options import (
+    rig_options,
+    rig_overrides,
+    rig_profile_choice,
+    rig_profile_option,
+    scale_choice,
+    scale_options,
+)
 from .outputs import REPORT_FOLDER_FILES, Output, check_outputs, force_option
 from .params import MOTION, SEED, SIZE
 
@@ -58,6 +65,7 @@ Example:
 )
 @scale_options
 @rig_options
+@rig_profile_option
 @force_option
 @verbosity_options
 @command("evaluate")
@@ -85,6 +93,7 @@ def cli(
             progress=progress.note,
             on_step=progress,
             rig_changes=rig_overrides(kwargs),
+            rig_profile=rig_profile_choice(kwargs),
             scale=scale,
             reach_subframes=reach,
         )

@@ -143,8 +143,11 @@ class Capture:
         if self.T.size and (float(self.T.min()) < 0 or float(self.T.max()) > tf * (1 + 1e-6)):
             raise FormatError(f"{what}: T outside [0, {tf}] s (the frame length)")
         if self.measure is not None:
-            if self.measure.ndim != 4 or self.measure.shape[1:] != self.I.shape:
-                raise FormatError(f"{what}: measuring images do not match I's size")
+            grids = (self.I.shape, (*self.rig.measure_shape, self.I.shape[2]))
+            if self.measure.ndim != 4 or self.measure.shape[1:] not in grids:
+                raise FormatError(
+                    f"{what}: measuring images match neither I's size nor the measurement camera's"
+                )
             if self.measure_times is None or self.measure_times.shape != (self.measure.shape[0], 2):
                 raise FormatError(f"{what}: measuring images lack their time bins")
         if self.truth_layers is not None:
