@@ -238,6 +238,17 @@ class MeasureGeometry:
         out *= self.vign.reshape(self.shape_m + (1,) * (out.ndim - 2))
         return out
 
+    def expose(self, light_e: np.ndarray, dark_e: float, rng: np.random.Generator) -> np.ndarray:
+        """One measuring subframe in DN on the measurement grid, (Hm, Wm, C) float32, from
+        the light (e-, dark current apart) the ideal rig's measurement sensor would
+        receive on the VET grid: :meth:`render`, dark current, the sensor chain at the
+        camera's gain."""
+        from .physics import expose
+
+        lam = self.render(light_e)
+        lam += np.float32(dark_e)
+        return expose(lam, self.rig, rng, gain=self.rig.measure_gain)
+
     def register(self, meas_img: np.ndarray) -> np.ndarray:
         """A measurement-grid (Hm, Wm, C) image in DN onto the VET grid, in the DN the
         ideal rig's measurement sensor would record: (H, W, C) float32."""
@@ -329,6 +340,16 @@ def open_integral(u: np.ndarray, switch_s: float) -> np.ndarray:
         return np.minimum(u, 0.0)
     v = np.clip(u, 0.0, switch_s)
     return np.minimum(u, 0.0) + v - v * v / (2.0 * switch_s)
+
+
+def close_times(close_subframe: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """When each cell was actually applied closed (s; inf where never: a negative index or
+    int32 max): the start of its closing subframe on the trigger clock ``starts``
+    (:func:`subframe_clock`), float64 like ``close_subframe``'s shape."""
+    c = np.asarray(close_subframe)
+    never = (c < 0) | (c >= np.iinfo(np.int32).max)
+    idx = np.clip(c, 0, len(starts) - 1)
+    return np.where(never, np.inf, starts[idx])
 
 
 def slot_transmittance(

@@ -42,6 +42,7 @@ from .formats.capture import Capture, measure_bin_edges, provenance_entry
 from .motion import Motion, TrajectoryMotion, trajectory_times
 from .optics import (
     MeasureGeometry,
+    close_times,
     pixel_leakage,
     relay_blur,
     slot_transmittance,
@@ -350,21 +351,12 @@ class RealRig:
         ideal measurement sensor would receive on the VET grid."""
         if self.geom is None:
             return expose(light_e + dark_e, self.rig, rng)
-        lam = self.geom.render(light_e)
-        lam += dark_e
-        return expose(lam, self.rig, rng, gain=self.rig.measure_gain)
-
-    def close_times(self, ctrl: ClosureController) -> np.ndarray:
-        """When each VET pixel's cell was actually applied closed (s; inf: open)."""
-        c = ctrl.close_subframe
-        idx = np.minimum(c, len(self.starts) - 1)
-        t = np.where(c == ClosureController.NEVER, np.inf, self.starts[idx])
-        return self.cellmap.to_pixels(t)
+        return self.geom.expose(light_e, dark_e, rng)
 
     def transmittance(self, ctrl: ClosureController, a: float, b: float) -> np.ndarray:
         """Mean transmittance over ``[a, b]`` s of each VET pixel, (H, W) float32."""
-        trans = slot_transmittance(self.close_times(ctrl), a, b, self.eps, self.rig)
-        return relay_blur(trans, self.rig.relay_blur_px)
+        t = self.cellmap.to_pixels(close_times(ctrl.close_subframe, self.starts))
+        return relay_blur(slot_transmittance(t, a, b, self.eps, self.rig), self.rig.relay_blur_px)
 
     def exposure_time(self, ctrl: ClosureController) -> np.ndarray:
         """T as the rig records it: the subframe at which the device applied the closure,
