@@ -18,8 +18,8 @@ vanish and :mod:`stages.physics` alone is the model); this module computes with 
   and measuring subframes drop with probability ``drop_rate`` (:func:`subframe_clock`).
 
 Coordinates are continuous with pixel (0, 0) covering ``[0, 1) x [0, 1)`` (as in
-:func:`stages.rig.default_homography`); OpenCV's ``remap`` puts pixel centres on integers,
-hence the half-pixel shifts below.
+:func:`stages.rig.default_homography`); resampling puts pixel centres on integers, hence
+the half-pixel shifts below.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
+from .formats.capture import Capture
 from .physics import CellMap
 from .rig import RigParams
 
@@ -74,6 +75,31 @@ def realistic_parts(sensor_size: tuple[int, int]) -> dict[str, Any]:
         "trigger_jitter_s": 0.00005,
         "drop_rate": 0.002,
     }
+
+
+#: The fields of the parts this module models (the rest of a rig is the ideal model's).
+PARTS = (
+    "measure_size",
+    "measure_homography",
+    "measure_k1",
+    "measure_k2",
+    "measure_gain",
+    "measure_vignetting",
+    "relay_blur_px",
+    "leakage_spread",
+    "leakage_seed",
+    "switch_s",
+    "trigger_offset_s",
+    "trigger_jitter_s",
+    "drop_rate",
+)
+
+
+def ideal_rig(rig: RigParams) -> RigParams:
+    """``rig`` with every part of a real rig at its ideal value (what a reader that
+    ignores the calibration assumes); the mean leakage and the rest stay."""
+    defaults = RigParams(sensor_size=rig.sensor_size)
+    return rig.replace(**{k: getattr(defaults, k) for k in PARTS})
 
 
 def rig_profile(spec: str, sensor_size: tuple[int, int], **overrides: Any) -> RigParams:
@@ -188,18 +214,32 @@ def vignetting(rig: RigParams) -> np.ndarray:
     return (1.0 / (1.0 + rig.measure_vignetting * r2) ** 2).astype(np.float32)
 
 
-def _remap(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
-    """Bilinear sample of (H, W[, C]) float32 at continuous coordinates (edge replicated)."""
-    import cv2
+def bilinear_matrix(mx: np.ndarray, my: np.ndarray, src: tuple[int, int]):
+    """Bilinear sampling of a (H, W) image at the points ``(mx, my)`` (pixel centres on
+    integers, edges replicated) as a scipy CSR matrix (points, H W) float32: exact weights,
+    where OpenCV's ``remap`` rounds them to 1/32."""
+    import scipy.sparse as sp
 
-    out = cv2.remap(
-        np.ascontiguousarray(img, np.float32),
-        mx,
-        my,
-        interpolation=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
-    return out.reshape(mx.shape + img.shape[2:])
+    h, w = src
+    x = np.clip(np.asarray(mx, np.float64).ravel(), 0, w - 1)
+    y = np.clip(np.asarray(my, np.float64).ravel(), 0, h - 1)
+    x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
+    fx, fy = x - x0, y - y0
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    rows = np.repeat(np.arange(x.size), 4)
+    cols = np.stack([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1], axis=1).ravel()
+    vals = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    return sp.csr_matrix((vals.ravel().astype(np.float32), (rows, cols)), shape=(x.size, h * w))
+
+
+def _apply(m, img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``m @ img`` per channel of an (h, w[, C]) image, as (*shape[, C]) float32."""
+    flat = np.asarray(img, np.float32).reshape(m.shape[1], -1)
+    out = np.empty((m.shape[0], flat.shape[1]), np.float32)
+    for c in range(flat.shape[1]):
+        out[:, c] = m @ np.ascontiguousarray(flat[:, c])
+    return out.reshape(shape + img.shape[2:])
 
 
 class MeasureGeometry:
@@ -219,22 +259,20 @@ class MeasureGeometry:
         self.shape_v = (rig.sensor_size[1], rig.sensor_size[0])
         xv, yv = measure_to_vet(rig)
         self.xv, self.yv = xv, yv
-        self._render = ((xv - 0.5).astype(np.float32), (yv - 0.5).astype(np.float32))
+        self._to_meas = bilinear_matrix(xv - 0.5, yv - 0.5, self.shape_v)
         um, vm = vet_to_measure(rig)
-        self._register = ((um - 0.5).astype(np.float32), (vm - 0.5).astype(np.float32))
+        self._to_vet = bilinear_matrix(um - 0.5, vm - 0.5, self.shape_m)
         self.vign = vignetting(rig)
         self.flat = (1.0 / (self.vign * np.float32(rig.measure_gain))).astype(np.float32)
-        v_reg = _remap(self.vign, *self._register)
-        fx = self._register[0] - np.floor(self._register[0])
-        fy = self._register[1] - np.floor(self._register[1])
-        s = ((1 - fx) ** 2 + fx**2) * ((1 - fy) ** 2 + fy**2)
+        v_reg = _apply(self._to_vet, self.vign, self.shape_v)
+        s = np.asarray(self._to_vet.multiply(self._to_vet).sum(axis=1)).reshape(self.shape_v)
         self.shot_scale = (s / v_reg).astype(np.float32)
         self.read_scale = (s / (v_reg * v_reg)).astype(np.float32)
 
     def render(self, vet_img: np.ndarray) -> np.ndarray:
         """Light of a VET-grid (H, W, C) image as each measurement pixel receives it,
         vignetting included: (Hm, Wm, C) float32."""
-        out = _remap(vet_img, *self._render)
+        out = _apply(self._to_meas, vet_img, self.shape_m)
         out *= self.vign.reshape(self.shape_m + (1,) * (out.ndim - 2))
         return out
 
@@ -253,12 +291,19 @@ class MeasureGeometry:
         """A measurement-grid (Hm, Wm, C) image in DN onto the VET grid, in the DN the
         ideal rig's measurement sensor would record: (H, W, C) float32."""
         flat = self.flat.reshape(self.shape_m + (1,) * (meas_img.ndim - 2))
-        return _remap(np.asarray(meas_img, np.float32) * flat, *self._register)
+        return _apply(self._to_vet, np.asarray(meas_img, np.float32) * flat, self.shape_v)
 
     def register_mask(self, mask: np.ndarray) -> np.ndarray:
         """A measurement-grid (Hm, Wm) boolean onto the VET grid: True where any of the
         pixels a VET pixel's value is interpolated from is True."""
-        return _remap(mask.astype(np.float32), *self._register) > 0
+        return _apply(self._to_vet, mask.astype(np.float32), self.shape_v) > 0
+
+    def operator(self):
+        """The measurement camera as a sparse matrix on the VET grid: row ``u`` (a
+        measurement pixel, row-major) holds the bilinear weights of the VET pixels its
+        centre lands among (edges replicated), the sampling :meth:`render` does, so that
+        ``render(img) == vign * (A @ img)`` per channel. scipy CSR (Hm Wm, H W) float32."""
+        return self._to_meas
 
     def host_cells(self, cellmap_vet: CellMap) -> tuple[CellMap, np.ndarray, np.ndarray]:
         """How the host thresholds the LCoS cells on the measuring pixels that image them.
@@ -399,3 +444,165 @@ def subframe_clock(rig: RigParams, rng: np.random.Generator) -> tuple[np.ndarray
         starts = starts + rng.normal(0.0, rig.trigger_jitter_s, n)
     dropped = rng.random(k) < rig.drop_rate if rig.drop_rate > 0 else np.zeros(k, bool)
     return starts, dropped
+
+
+# --- the measuring images on the VET grid ------------------------------------------------
+
+#: Weight of the smoothness term of :func:`fit_bin`, relative to what one measuring
+#: pixel of the neighbours' brightness weighs: enough to fix the frequencies the
+#: sampling is blind to (half-pixel offsets), far below what a pixel's own data says.
+FIT_SMOOTHNESS = 0.001
+
+
+def fit_bin(
+    geom: MeasureGeometry,
+    bin_dn: np.ndarray,
+    n_sub: int,
+    start_e: np.ndarray,
+    extra: tuple[np.ndarray, np.ndarray] | None = None,
+    iters: int = 300,
+) -> np.ndarray:
+    """A measuring bin inverted onto the VET grid through the camera's sampling.
+
+    ``bin_dn`` (Hm, Wm, C): the sum of ``n_sub`` subframes as the camera recorded them.
+    Finds the VET-grid image ``x`` (electrons the ideal rig's measurement sensor would
+    have collected, dark current included) minimising ``sum w (A x - y)^2`` over the
+    measuring pixels (``y`` the flat-fielded bin, ``w`` its inverse Poisson-Gaussian
+    variance, 0 where a subframe may have clipped; ``A``: :meth:`MeasureGeometry.operator`)
+    plus ``extra`` rows ``sum w_v (x - y_v)^2`` ((H, W, C) each, e.g. the VET image's own
+    pixels) plus a weak smoothness (:data:`FIT_SMOOTHNESS`), by preconditioned conjugate
+    gradients from ``start_e`` (H, W, C). Returns (H, W, C) float64.
+    """
+    from .physics import bin_may_clip
+
+    rig = geom.rig
+    A = geom.operator().astype(np.float64)
+    AT = A.T.tocsr()
+    A2T = A.multiply(A).T.tocsr()
+    h, w = geom.shape_v
+    nc = bin_dn.shape[-1]
+    g = rig.gain_dn_per_e
+    clipped = bin_may_clip(np.asarray(bin_dn, np.float32) / np.float32(n_sub), rig).ravel()
+    v = geom.vign.astype(np.float64).ravel()[:, None]
+    y_m = np.asarray(bin_dn, np.float64).reshape(v.size, nc) / (g * rig.measure_gain * v)
+    read = n_sub * (rig.read_noise_e**2 + 1 / (12 * g * g))
+    w_m = 1.0 / (np.maximum(y_m, 0) / v + read / v**2)
+    w_m[clipped] = 0.0
+    start_e = np.asarray(start_e, np.float64).reshape(h, w, nc)
+    out = np.empty((h, w, nc))
+    for c in range(nc):
+        wm = w_m[:, c]
+        wv = extra[0][..., c].ravel() if extra is not None else np.zeros(h * w)
+        yv = extra[1][..., c].ravel() if extra is not None else np.zeros(h * w)
+        # Smoothness between neighbours in proportion to what one measuring pixel of
+        # their brightness weighs (1 / variance), so it means as much in the dark.
+        wp = 1.0 / (np.maximum(start_e[..., c], 0) + read)
+        cx = FIT_SMOOTHNESS * np.minimum(wp[:, :-1], wp[:, 1:])
+        cy = FIT_SMOOTHNESS * np.minimum(wp[:-1, :], wp[1:, :])
+
+        def normal(x, wm=wm, wv=wv, cx=cx, cy=cy):
+            return AT @ (wm * (A @ x)) + wv * x + _smoothness(x.reshape(h, w), cx, cy).ravel()
+
+        diag = A2T @ wm + wv + _smoothness_diag(cx, cy).ravel()
+        b = AT @ (wm * y_m[:, c]) + wv * yv
+        out[..., c] = _pcg(normal, b, diag, start_e[..., c].ravel(), iters).reshape(h, w)
+    return out
+
+
+def _pcg(normal, b: np.ndarray, diag: np.ndarray, x: np.ndarray, iters: int) -> np.ndarray:
+    """Jacobi-preconditioned conjugate gradients, relative residual 1e-7. Inner products
+    as elementwise sums, not BLAS calls, whose threads fight on a busy machine."""
+    x = x.copy()
+    r = b - normal(x)
+    z = r / diag
+    p = z.copy()
+    rz = float((r * z).sum())
+    stop = 1e-14 * float((b * b).sum())
+    for _ in range(iters):
+        if float((r * r).sum()) <= stop:
+            break
+        q = normal(p)
+        alpha = rz / float((p * q).sum())
+        x += alpha * p
+        r -= alpha * q
+        z = r / diag
+        rz, rz_old = float((r * z).sum()), rz
+        p *= rz / rz_old
+        p += z
+    return x
+
+
+def _smoothness(x: np.ndarray, cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
+    """``D^T C D x`` for forward differences weighted ``cx`` (H, W-1) and ``cy`` (H-1, W)."""
+    out = np.zeros_like(x)
+    dx = cx * np.diff(x, axis=1)
+    dy = cy * np.diff(x, axis=0)
+    out[:, :-1] -= dx
+    out[:, 1:] += dx
+    out[:-1, :] -= dy
+    out[1:, :] += dy
+    return out
+
+
+def _smoothness_diag(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
+    d = np.zeros((cy.shape[0] + 1, cx.shape[1] + 1))
+    d[:, :-1] += cx
+    d[:, 1:] += cx
+    d[:-1, :] += cy
+    d[1:, :] += cy
+    return d
+
+
+def register_measure(cap: Capture, fit: bool = False, fit_iters: int = 100) -> Capture:
+    """A capture whose measuring images lie on the VET grid, as the ideal rig's would.
+
+    Each measuring image (the measurement camera's DN) is flat-fielded for the camera's
+    gain and vignetting and resampled through measurement -> VET (homography and radial
+    distortion, bilinear: :class:`MeasureGeometry`); ``measure_noise`` (2, H, W) carries
+    the factors on the ideal rig's shot and read variances. Where a subframe may have
+    clipped (any of the pixels interpolated from reached the saturation code), the
+    registered pixel is set to the top code per subframe, flat-fielded (a lower bound,
+    above the saturation code), so the clipped-bin test
+    (:func:`stages.physics.bin_may_clip`) still finds it. A stream (int16) stays int16
+    (whole DN; the rounding adds 1/12 DN^2, below the read noise). The capture itself
+    when the measurement camera is the VET sensor's grid or the images are registered
+    already.
+
+    With ``fit`` each image is inverted through the camera's sampling instead
+    (:func:`fit_bin`, ``fit_iters`` iterations from the interpolation; for a few time
+    bins, not a stream): sharper, and each pixel's noise is then about one measuring
+    pixel's (``measure_noise`` without the interpolation's averaging).
+    """
+    from dataclasses import replace
+
+    from .physics import bin_may_clip
+
+    rig = cap.rig
+    if cap.measure is None or rig.ideal_geometry or cap.measure_noise is not None:
+        return cap
+    geom = MeasureGeometry(rig)
+    n = cap.measure_counts()
+    h, w = geom.shape_v
+    out = np.empty((cap.measure.shape[0], h, w, cap.measure.shape[3]), cap.measure.dtype)
+    top = np.float32(rig.max_dn)
+    flat_v = geom.register(np.ones((*geom.shape_m, 1), np.float32))[..., 0]
+    g = np.float32(rig.gain_dn_per_e)
+    for b in range(cap.measure.shape[0]):
+        raw = np.asarray(cap.measure[b], np.float32)
+        reg = geom.register(raw)
+        if fit:
+            reg = (fit_bin(geom, raw, int(n[b]), reg / g, iters=fit_iters) * g).astype(np.float32)
+        clipped = bin_may_clip(raw / np.float32(n[b]), rig)
+        if clipped.any():
+            hit = geom.register_mask(clipped)
+            reg[hit] = (top * np.float32(n[b]) * flat_v[hit])[:, None]
+        if out.dtype == np.int16:
+            np.rint(reg, out=reg)
+            np.clip(reg, -32768, 32767, out=reg)
+        out[b] = reg
+    noise = np.stack([geom.shot_scale, geom.read_scale])
+    if fit:
+        noise = noise / np.asarray(geom._to_vet.multiply(geom._to_vet).sum(axis=1)).reshape(
+            1, *geom.shape_v
+        )
+    return replace(cap, measure=out, measure_noise=noise.astype(np.float32))

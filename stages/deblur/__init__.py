@@ -34,6 +34,7 @@ from ..errors import InputError
 from ..formats.capture import Capture, provenance_entry
 from ..formats.hdr import HDRImage
 from ..hdr_static import hdr_static, reconstruction
+from ..optics import register_measure
 
 log = logging.getLogger(__name__)
 
@@ -265,6 +266,11 @@ def deblur(
 
     t_start = time.perf_counter()
     static = hdr_static(cap)
+    # A real rig's measurement camera: its images onto the VET grid, with their noise
+    # (stages.optics), for the motion estimate; the misfit fits its bins through the
+    # camera's sampling (stages.deblur.problem.observations, from the capture as recorded).
+    recorded = cap
+    cap = register_measure(cap)
     L_init = output_to_rate(cap, static.radiance).astype(np.float32)
     layers = None
     if motion is None and motion_init == "truth":
@@ -293,10 +299,10 @@ def deblur(
     # method fits; the paper's method, which fits I only, keeps their hdr-static value.)
     bound_only = static.mask == 2
     saturated = np.isin(static.mask, (1, 2, 4)) if method == "paper" else bound_only
-    from .problem import observations
+    from .problem import effective_T, observations
 
     # What both methods take: the start image and motion, and the capture's timing.
-    start = (L_init, vel0, cap.T, tf, rig.subframe_s, rig.leakage)
+    start = (L_init, vel0, effective_T(cap, tf), tf, rig.subframe_s, rig.leakage)
     if method != "vet":
         tile = None
     tiled = _tiled(tile, cap.shape)
@@ -321,7 +327,7 @@ def deblur(
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
-        obs = observations(cap, use_measure=opts.use_measure, stream=opts.stream_fit)
+        obs = observations(recorded, use_measure=opts.use_measure, stream=opts.stream_fit)
         report: dict = {}
         L, vel = deblur_joint(
             obs,

@@ -84,6 +84,10 @@ class Capture:
     truth: np.ndarray | None = None  # (H, W, C) scene units
     truth_motion: np.ndarray | None = None  # (H, W, 2) px/s
     truth_layers: np.ndarray | None = None  # (H, W) layer index (motions along paths)
+    # Set by stages.optics.register_measure (never stored): the measuring images lie on
+    # the VET grid, and these (2, H, W) factors scale the ideal rig's shot and read
+    # variances of each of their pixels.
+    measure_noise: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -115,7 +119,24 @@ class Capture:
         )
         mt = np.asarray(self.measure_times, np.float64)
         times = np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
-        return replace(self, measure=bins, measure_times=times)
+        n = self.measure_counts()
+        meta = dict(self.meta)
+        meta["measure_subframes"] = [
+            int(n[a:b].sum()) for a, b in zip(edges[:-1], edges[1:], strict=True)
+        ]
+        return replace(self, measure=bins, measure_times=times, meta=meta)
+
+    def measure_counts(self) -> np.ndarray:
+        """Subframes summed in each measuring image, (B,) int: the metadata's
+        ``measure_subframes`` where it fits, else each time bin's length in subframes (a
+        bin spanning a dropped subframe holds one fewer than its span)."""
+        if self.measure is None or self.measure_times is None:
+            return np.zeros(0, int)
+        n = self.meta.get("measure_subframes")
+        if isinstance(n, list) and len(n) == self.measure.shape[0]:
+            return np.maximum(np.asarray(n, int), 1)
+        dur = np.diff(np.asarray(self.measure_times, np.float64), axis=1)[:, 0]
+        return np.maximum(np.rint(dur / self.rig.subframe_s), 1).astype(int)
 
     @property
     def method(self) -> str:
