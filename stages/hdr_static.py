@@ -124,7 +124,8 @@ def hdr_static(cap: Capture, assume_ideal_rig: bool = False) -> HDRImage:
         ``radiance`` (H, W, C) float32 in scene units or DN/s, ``mask`` (H, W) uint8,
         ``exposure_time`` the capture's T.
     """
-    from .optics import ideal_rig, register_measure
+    from .measure_grid import register_measure
+    from .optics import ideal_rig
 
     if assume_ideal_rig:
         from dataclasses import replace
@@ -243,7 +244,8 @@ def fit_through_geometry(
     VET image's clipped channels.
     """
     from .formats.capture import measure_bin_edges
-    from .optics import MeasureGeometry, fit_bin
+    from .measure_grid import fit_bin
+    from .optics import MeasureGeometry
 
     rig = raw.rig
     geom = MeasureGeometry(rig)

@@ -339,7 +339,7 @@ def test_fit_through_geometry_recovers_what_interpolation_smooths():
     through the camera's sampling recovers the scene far better than interpolating it."""
     from stages.formats.capture import Capture
     from stages.hdr_static import fit_through_geometry
-    from stages.optics import register_measure
+    from stages.measure_grid import register_measure
 
     w, h = 64, 48
     rig = rig_profile("realistic", (w, h), read_noise_e=0.0, dark_current_e_s=0.0)

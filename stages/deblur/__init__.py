@@ -34,7 +34,7 @@ from ..errors import InputError
 from ..formats.capture import Capture, provenance_entry
 from ..formats.hdr import HDRImage
 from ..hdr_static import hdr_static, reconstruction
-from ..optics import register_measure
+from ..measure_grid import register_measure
 
 log = logging.getLogger(__name__)
 

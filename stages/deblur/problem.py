@@ -92,7 +92,7 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
     if use_measure and cap.keeps_stream and not stream:
         cap = cap.time_bins(FIT_BINS)
     if not rig.ideal_geometry and cap.measure is not None:
-        from ..optics import register_measure
+        from ..measure_grid import register_measure
 
         # Onto the VET grid with their noise: bins inverted through the camera's
         # sampling (interpolation would smooth them), a stream interpolated.
