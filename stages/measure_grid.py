@@ -71,11 +71,11 @@ def fit_bin(
 
         diag = A2T @ wm + wv + _smoothness_diag(cx, cy).ravel()
         b = AT @ (wm * y_m[:, c]) + wv * yv
-        out[..., c] = _pcg(normal, b, diag, start_e[..., c].ravel(), iters).reshape(h, w)
+        out[..., c] = pcg(normal, b, diag, start_e[..., c].ravel(), iters).reshape(h, w)
     return out
 
 
-def _pcg(normal, b: np.ndarray, diag: np.ndarray, x: np.ndarray, iters: int) -> np.ndarray:
+def pcg(normal, b: np.ndarray, diag: np.ndarray, x: np.ndarray, iters: int) -> np.ndarray:
     """Jacobi-preconditioned conjugate gradients, relative residual 1e-7. Inner products
     as elementwise sums, not BLAS calls, whose threads fight on a busy machine."""
     x = x.copy()
