@@ -33,7 +33,7 @@ import numpy as np
 
 from .errors import InputError
 from .physics import CellMap
-from .rig import RigParams
+from .rig import REAL_RIG_PARTS, RigParams
 
 #: Named rig profiles of ``--rig-profile``.
 PROFILES = ("ideal", "realistic")
@@ -77,21 +77,7 @@ def realistic_parts(sensor_size: tuple[int, int]) -> dict[str, Any]:
 
 
 #: The fields of the parts this module models (the rest of a rig is the ideal model's).
-PARTS = (
-    "measure_size",
-    "measure_homography",
-    "measure_k1",
-    "measure_k2",
-    "measure_gain",
-    "measure_vignetting",
-    "relay_blur_px",
-    "leakage_spread",
-    "leakage_seed",
-    "switch_s",
-    "trigger_offset_s",
-    "trigger_jitter_s",
-    "drop_rate",
-)
+PARTS = REAL_RIG_PARTS
 
 
 def ideal_rig(rig: RigParams) -> RigParams:

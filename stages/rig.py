@@ -34,6 +34,24 @@ def default_homography(
     return [[sx, 0.0, 0.0], [0.0, sy, 0.0], [0.0, 0.0, 1.0]]
 
 
+#: The fields of the parts of a real rig (:mod:`stages.optics`), ideal by default.
+REAL_RIG_PARTS = (
+    "measure_size",
+    "measure_homography",
+    "measure_k1",
+    "measure_k2",
+    "measure_gain",
+    "measure_vignetting",
+    "relay_blur_px",
+    "leakage_spread",
+    "leakage_seed",
+    "switch_s",
+    "trigger_offset_s",
+    "trigger_jitter_s",
+    "drop_rate",
+)
+
+
 @dataclass
 class RigParams:
     """Physical parameters of a VET rig (units in the names; times in seconds).
@@ -270,10 +288,17 @@ class RigParams:
 
     # Serialisation -------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
+        """Every field as plain JSON values; the parts of a real rig only where they are
+        not ideal (absent means ideal, so the ideal rig's metadata is what it always was)."""
         d = dataclasses.asdict(self)
         d["lcos_cells"] = list(self.lcos_cells)
         d["sensor_size"] = list(self.sensor_size)
         d["measure_size"] = list(self.measure_size)
+        for f in dataclasses.fields(self):
+            if f.name in REAL_RIG_PARTS:
+                ideal = f.default_factory() if f.default is dataclasses.MISSING else f.default
+                if d[f.name] == (list(ideal) if isinstance(ideal, tuple) else ideal):
+                    del d[f.name]
         return d
 
     @classmethod

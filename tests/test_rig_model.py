@@ -36,6 +36,11 @@ def test_ideal_profile_is_todays_rig(small_scene):
     rig = rig_profile("ideal", (96, 80))
     assert rig == RigParams(sensor_size=(96, 80))
     assert rig.ideal_geometry and rig.ideal_shutter and rig.drop_rate == 0
+    # Its metadata is what it always was: the parts are absent (absent means ideal).
+    from stages.rig import REAL_RIG_PARTS
+
+    assert not set(REAL_RIG_PARTS) & set(rig.to_dict())
+    assert RigParams.from_dict(rig.to_dict()) == rig
     a = simulate(small_scene, STILL, rig, seed=3)["vet"]
     b = simulate(small_scene, STILL, RigParams(sensor_size=(96, 80)), seed=3)["vet"]
     np.testing.assert_array_equal(a.I, b.I)
