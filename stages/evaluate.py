@@ -71,6 +71,7 @@ class Evaluation:
     radiance_scale: float = float("nan")
     reach_subframes: float | None = 1.0  # None: the radiance scale was given
     rig_changes: dict[str, Any] = field(default_factory=dict)
+    rig_profile: str = "ideal"  # stages.optics.rig_profile
     floor: float = 0.0  # truth level (scene units) at or below which pixels are not scored
     floor_e: float = 0.0  # the same, as electrons of a whole-frame VET exposure
 
@@ -153,6 +154,7 @@ def run_evaluation(
         radiance_scale=float(vet.radiance_scale),
         reach_subframes=float(reach_subframes) if scale is None else None,
         rig_changes=changes,
+        rig_profile=rig_profile,
     )
     ev.floor = measurable_floor(rig, ev.radiance_scale)
     ev.floor_e = ev.floor * ev.radiance_scale * rig.frame_s
@@ -251,6 +253,8 @@ def results_markdown(ev: Evaluation) -> str:
 def rig_sentence(ev: Evaluation) -> str:
     """The rig and radiance scale the captures were rendered with, as one sentence."""
     defaults = "vet's default rig (the values `vet simulate --help` lists)"
+    if ev.rig_profile != "ideal":
+        defaults += f" with the parts of rig profile {ev.rig_profile}"
     if ev.rig_changes:
         rig = f"{defaults} except " + ", ".join(
             f"{k} = {v}" for k, v in sorted(ev.rig_changes.items())

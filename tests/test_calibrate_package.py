@@ -22,6 +22,7 @@ LAYERS = (
     "emulated",
     "run",
     "selftest",
+    "parts",
 )
 
 
