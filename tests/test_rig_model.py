@@ -391,3 +391,28 @@ def test_deblur_reads_the_measuring_images_through_the_geometry(small_scene):
         return stops_error(img.radiance, cap.truth, cap.T, cap.rig.frame_s)["all"]["rms"]
 
     assert rms("realistic") <= 1.3 * rms("ideal")
+
+
+def test_evaluate_rows_with_and_without_the_rigs_parts(tmp_path):
+    import csv
+
+    out = tmp_path / "ev"
+    r = run_cli(
+        "evaluate",
+        "builtin:interior",
+        "--motion",
+        "none",
+        "--size",
+        "64x48",
+        "--methods",
+        "vet-static,vet-static-ideal-rig",
+        "--rig-profile",
+        "realistic",
+        "-o",
+        out,
+    )
+    assert r.exit_code == 0, r.output
+    rows = {row["method"]: row for row in csv.DictReader((out / "results.csv").open())}
+    assert set(rows) == {"vet-static", "vet-static-ideal-rig"}
+    assert float(rows["vet-static-ideal-rig"]["all_rms"]) > 2 * float(rows["vet-static"]["all_rms"])
+    assert "rig profile realistic" in (out / "results.md").read_text()
