@@ -75,3 +75,31 @@ def test_leakage_map_per_pixel_and_per_cell():
     cells, leak = leakage_per_cell(ratio, rig)
     assert cells.size == 24 * 20
     assert np.abs(leak / leakage_map(rig).ravel()[cells] - 1).max() < 0.1
+
+
+def test_vet_calibrate_finds_the_parts_of_the_emulated_realistic_rig(tmp_path):
+    """vet calibrate --rig sim --size 160x120 --rig-profile realistic: the mapping within
+    0.1 px RMS, the trigger offset within 0.1 ms, the switching time within 10%; the
+    calibration file keeps them, and capture --calibration takes them."""
+    from stages.calibrate import calibration_changes, read_calibration
+    from tests.test_rig_model import run_cli
+
+    out = tmp_path / "cal.npz"
+    r = run_cli(
+        "calibrate", "--rig", "sim", "--size", "160x120", "--rig-profile", "realistic", "-o", out
+    )
+    assert r.exit_code == 0, r.output
+    cal = read_calibration(str(out))
+    err = cal.provenance["errors_vs_truth"]
+    assert err["mapping_rms_px"] <= 0.1
+    assert abs(err["trigger_offset_err_s"]) <= 1e-4
+    assert abs(err["switch_rel_err"]) <= 0.1
+    changes = calibration_changes(cal)
+    assert set(cal.parts) == {
+        "measure_homography",
+        "measure_k1",
+        "measure_k2",
+        "trigger_offset_s",
+        "switch_s",
+    }
+    assert all(changes[k] == v for k, v in cal.parts.items())

@@ -25,7 +25,8 @@ The modules, each importing only those above it:
 - :mod:`.parts`: the parts of a real rig (:mod:`stages.optics`): the measurement ->
   VET mapping and distortion from a chessboard both cameras see, the switching time and
   trigger offset from closures at a known subframe, the leakage map per pixel and per
-  cell (``python -m stages.calibrate.parts``; not yet steps of ``vet calibrate``).
+  cell (``python -m stages.calibrate.parts``; the emulated rig's mapping, trigger
+  offset and switching time in ``vet calibrate --rig sim --rig-profile``).
 
 The result is a :class:`Calibration`, stored as a :class:`~stages.formats.layered.Layered`
 file with ``kind = "calibration"`` (EXR or npz). :func:`apply_calibration` turns it into

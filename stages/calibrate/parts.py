@@ -137,6 +137,20 @@ def emulated_target_frames(
     return vet[..., 0], meas[..., 0], pattern
 
 
+def emulated_corner_pairs(rig: RigParams, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+    """Chessboard corners found in both emulated cameras' frames, ``(vet_pts, meas_pts)``,
+    trying square sizes from 12 px until the detector finds the whole board in both (as
+    a lab moves the board nearer or farther); None if it never does."""
+    for square in (12, 16, 10, 20, 8, 24):
+        vet, meas, pattern = emulated_target_frames(rig, seed=seed, square_px=square)
+        if min(pattern) < 3:
+            continue
+        pv, pm = find_corners(vet, pattern), find_corners(meas, pattern)
+        if pv is not None and pm is not None:
+            return pv, pm
+    return None
+
+
 # --- switching time and trigger offset ------------------------------------------------
 
 
@@ -268,6 +282,35 @@ def leakage_per_cell(
     return cells[keep], e[keep].astype(np.float32)
 
 
+def calibrate_parts(rig: RigParams, seed: int = 0) -> tuple[dict, dict]:
+    """The parts of the emulated ``rig`` found from the frames its physics records: the
+    measurement -> VET mapping (chessboard), the trigger offset and switching time
+    (closures at subframe 20). Returns the RigParams fields found and their errors
+    against the truth (``mapping_rms_px``, ``trigger_offset_err_s``,
+    ``switch_rel_err``)."""
+    found: dict = {}
+    errors: dict = {}
+    if not rig.ideal_geometry:
+        pairs = emulated_corner_pairs(rig, seed)
+        if pairs is not None:
+            fit = fit_measure_mapping(*pairs, rig.measure_shape)
+            found = {k: fit[k] for k in ("measure_homography", "measure_k1", "measure_k2")}
+            errors["mapping_rms_px"] = mapping_error_px(rig.replace(**found), rig)
+    if rig.switch_s > 0 or rig.trigger_offset_s > 0:
+        c = min(20, rig.n_subframes - 1)
+        t_true = c * rig.subframe_s + rig.trigger_offset_s
+        wins = t_true + np.linspace(-2e-3, 5e-3, 15)
+        wins = wins[(wins > 0) & (wins <= rig.frame_s)]
+        e = emulated_switching_series(rig, c, wins, 0.5 * rig.full_well_e / wins.max(), seed)
+        t_fit, s_fit = fit_switching(wins, e, rig.leakage, c * rig.subframe_s)
+        found["trigger_offset_s"] = max(0.0, t_fit - c * rig.subframe_s)
+        found["switch_s"] = s_fit
+        errors["trigger_offset_err_s"] = found["trigger_offset_s"] - rig.trigger_offset_s
+        if rig.switch_s > 0:
+            errors["switch_rel_err"] = s_fit / rig.switch_s - 1
+    return found, errors
+
+
 def selftest(size: tuple[int, int] = (320, 240), seed: int = 0) -> dict:
     """Each part calibrated on the emulated realistic rig against its truth: the mapping's
     RMS error over the frame (VET px), the trigger offset and switching time (s, found
@@ -276,11 +319,10 @@ def selftest(size: tuple[int, int] = (320, 240), seed: int = 0) -> dict:
     from ..optics import leakage_map, rig_profile
 
     rig = rig_profile("realistic", size)
-    vet, meas, pattern = emulated_target_frames(rig, seed=seed, square_px=max(8, size[0] // 26))
-    pv, pm = find_corners(vet, pattern), find_corners(meas, pattern)
-    if pv is None or pm is None:
+    pairs = emulated_corner_pairs(rig, seed)
+    if pairs is None:
         raise RuntimeError("chessboard corners not found")
-    fit = fit_measure_mapping(pv, pm, rig.measure_shape)
+    fit = fit_measure_mapping(*pairs, rig.measure_shape)
     est = rig.replace(
         measure_homography=fit["measure_homography"],
         measure_k1=fit["measure_k1"],

@@ -245,6 +245,8 @@ class CalibrationMeta(_FileMeta):
     homography_fit: dict[str, Any] = {}
     rig: Rig | None = None
     provenance: dict[str, Any] = {}
+    # The parts of a real rig found (stages.calibrate.parts): rig fields, checked as such.
+    parts: Rig | None = None
     # Medians are NaN where nothing could be measured (calibration_changes skips them).
     leakage_median: float | None = None
     dark_current_median_e_s: float | None = None
