@@ -45,6 +45,9 @@ def effective_exposure(cap: Capture) -> np.ndarray:
     """
     w = float(cap.meta.get("integration_s", cap.rig.frame_s))
     leaks = cap.meta.get("leakage_applies", True)
+    if leaks and cap.ideal_T is not None:  # a tile of a frame: its equivalent T
+        t = cap.ideal_T.astype(np.float32)
+        return (t + np.float32(cap.rig.leakage) * (np.float32(w) - t))[..., None]
     if leaks and not cap.rig.ideal_shutter and cap.transmittance is None:
         from .optics import pixel_leakage, vet_exposure
         from .physics import CellMap
@@ -140,7 +143,9 @@ def hdr_static(cap: Capture, assume_ideal_rig: bool = False) -> HDRImage:
         cap = replace(cap, rig=ideal_rig(cap.rig))
     raw = cap
     cap = register_measure(cap)  # onto the VET grid (a real rig's measurement camera)
-    registered = cap.measure_noise is not None
+    # Fitted through the camera's sampling when it came on the camera's own grid (a tile
+    # of a frame comes registered already: interpolated).
+    registered = cap.measure_noise is not None and raw.measure_noise is None
     rig = cap.rig
     g = np.float32(rig.gain_dn_per_e)
     w = float(cap.meta.get("integration_s", rig.frame_s))

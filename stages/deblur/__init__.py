@@ -271,6 +271,12 @@ def deblur(
     # camera's sampling (stages.deblur.problem.observations, from the capture as recorded).
     recorded = cap
     cap = register_measure(cap)
+    if not cap.rig.ideal_shutter:  # on the whole frame, for tiles cropped from it too
+        from .problem import effective_T as _effective_T
+
+        cap = replace(
+            cap, ideal_T=_effective_T(cap, float(cap.meta.get("integration_s", cap.rig.frame_s)))
+        )
     L_init = output_to_rate(cap, static.radiance).astype(np.float32)
     layers = None
     if motion is None and motion_init == "truth":
@@ -314,8 +320,15 @@ def deblur(
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
+        tiles_cap = cap
+        if not cap.rig.ideal_geometry and recorded.measure is not None:
+            # The tiles fit bins fitted through the camera's sampling on the whole frame.
+            from .problem import FIT_BINS
+
+            fitted = register_measure(recorded.time_bins(FIT_BINS), fit=True)
+            tiles_cap = replace(fitted, ideal_T=cap.ideal_T)
         radiance, tiling = deblur_in_tiles(
-            deblur, cap, vel0, motion_model, opts, tile, workers, scheduler, solve_progress
+            deblur, tiles_cap, vel0, motion_model, opts, tile, workers, scheduler, solve_progress
         )
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}

@@ -158,6 +158,8 @@ def effective_T(cap: Capture, tf: float) -> np.ndarray:
     rig = cap.rig
     if rig.ideal_shutter:
         return cap.T
+    if cap.ideal_T is not None:
+        return cap.ideal_T
     from ..optics import pixel_leakage, vet_exposure
     from ..physics import CellMap
 

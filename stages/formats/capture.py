@@ -88,6 +88,10 @@ class Capture:
     # the VET grid, and these (2, H, W) factors scale the ideal rig's shot and read
     # variances of each of their pixels.
     measure_noise: np.ndarray | None = None
+    # Set by stages.deblur (never stored): (H, W) the T of the ideal shutter that exposes
+    # a still pixel as the real rig's LCoS did (switching, per-cell leakage, relay blur),
+    # computed on the whole frame so that tiles cropped from it keep it right.
+    ideal_T: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
