@@ -187,6 +187,12 @@ class Capture:
 
     # --- conversion to/from the layered container ---------------------------------
     def to_layered(self) -> Layered:
+        if self.measure is not None and self.measure.shape[1:3] != self.I.shape[:2]:
+            raise FormatError(
+                f"measuring images of {self.measure.shape[2]}x{self.measure.shape[1]} cannot be "
+                f"stored beside a {self.I.shape[1]}x{self.I.shape[0]} VET image (a capture "
+                "file's layers share one size): the rig's measure_size must be its sensor_size"
+            )
         data = Layered()
         data.add("I", self.I, self.channels)
         data.add("T", self.T, ["Y"])
