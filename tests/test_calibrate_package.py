@@ -19,10 +19,10 @@ LAYERS = (
     "frames",
     "acquire",
     "recorded",
+    "parts",
     "emulated",
     "run",
     "selftest",
-    "parts",
 )
 
 
