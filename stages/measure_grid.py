@@ -37,9 +37,8 @@ def fit_bin(
     variance, 0 where a subframe may have clipped; ``A``: :meth:`MeasureGeometry.operator`)
     plus ``extra`` rows ``sum w_v (x - y_v)^2`` ((H, W, C) each, e.g. the VET image's own
     pixels) plus a weak smoothness (:data:`FIT_SMOOTHNESS`), by preconditioned conjugate
-    gradients from ``start_e`` (H, W, C), at most ``iters`` iterations (from the
-    interpolated bin the error in stops settles within 50 on the shared scenes).
-    Returns (H, W, C) float64.
+    gradients from ``start_e`` (H, W, C), at most ``iters`` iterations. Returns
+    (H, W, C) float64.
     """
     from .physics import bin_may_clip
 

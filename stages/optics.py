@@ -43,10 +43,12 @@ def realistic_parts(sensor_size: tuple[int, int]) -> dict[str, Any]:
     """The ``realistic`` profile's parts for a VET sensor of ``sensor_size`` (W, H).
 
     Plausible for the published rig (two 1280x1024 machine-vision cameras behind a beam
-    splitter, an LCoS from a projector): the same camera model on both arms, 0.3 degrees
-    of rotation, 0.4% of scale and a shift of a few pixels between them, mild barrel
-    distortion, relay blur of about a pixel, leakage of 0.002 to 0.005 per cell, 2.5 ms
-    switching, triggers 0.5 ms apart with 0.05 ms jitter, one frame in 500 dropped.
+    splitter, an LCoS from a projector): the same camera model on both arms with a small
+    rotation, scale and shift between them, mild barrel distortion, a slightly lower gain
+    and vignetting on the measurement arm, relay blur of about a pixel, leakage varying
+    from cell to cell about its mean, milliseconds of switching, a trigger offset of a
+    fraction of a millisecond with jitter, rare dropped frames. RigParams fields, as a
+    dict (pixel quantities in the given sensor's pixels).
     """
     w, h = sensor_size
     cx, cy = w / 2.0, h / 2.0
