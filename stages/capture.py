@@ -37,6 +37,7 @@ import numpy as np
 from .errors import DeviceError, VetError
 from .formats.capture import Capture, provenance_entry, write_capture
 from .formats.io import atomic_output
+from .optics import MeasureGeometry
 from .physics import CellMap, ClosureController
 from .simulate import add_subframe, measure_store
 
@@ -133,7 +134,15 @@ def capture_frame(
         w, h = params.sensor_size
         k_sub, tau = params.n_subframes, params.subframe_s
         cellmap = CellMap.for_rig(params, (h, w))
-        ctrl = ClosureController(params, cellmap)
+        hm, wm = params.measure_shape
+        if params.ideal_geometry:
+            ctrl = ClosureController(params, cellmap)
+        else:
+            # Each cell is thresholded on the measuring pixels that image it (measurement
+            # -> VET -> LCoS), on frames flat-fielded for the camera's gain and vignetting.
+            geom = MeasureGeometry(params)
+            cm_m, starts, cells = geom.host_cells(cellmap)
+            ctrl = ClosureController(params, cm_m, extras=(starts, cells), dn_scale=geom.flat)
         decided = np.full(cellmap.n_cells, -1, np.int32)  # subframe whose data closed the cell
         rig.measurement.open()
         s0 = rig.lcos.open_all(0, wait=True)
@@ -149,7 +158,7 @@ def capture_frame(
             rig.vet.start_exposure()  # a host-triggered VET camera starts with the frame
         clog.info("frame 0 started at device subframe %d", s0)
         nch = len(rig.channels)
-        edges, measure = measure_store(k_sub, measure_bins, (h, w, nch))
+        edges, measure = measure_store(k_sub, measure_bins, (hm, wm, nch))
         bin_of = (
             np.searchsorted(edges, np.arange(k_sub), side="right") - 1
             if edges is not None
@@ -157,7 +166,7 @@ def capture_frame(
         )
         if raw_stream:
             raw = np.lib.format.open_memmap(
-                raw_tmp, mode="w+", dtype=np.int16, shape=(k_sub, h, w, nch)
+                raw_tmp, mode="w+", dtype=np.int16, shape=(k_sub, hm, wm, nch)
             )
         # Bins and the raw stream are bookkeeping, not control: a worker thread does them
         # (numpy releases the GIL) so the control path keeps up with the subframe clock.
@@ -179,10 +188,10 @@ def capture_frame(
         while k < k_sub:
             frame = rig.measurement.grab()
             data = frame.data
-            if data.shape != (h, w, nch):
+            if data.shape != (hm, wm, nch):
                 raise DeviceError(
                     f"measurement camera delivered {data.shape[1]}x{data.shape[0]}x{data.shape[2]} "
-                    f"frames; the rig expects {w}x{h}x{nch}"
+                    f"frames; the rig expects {wm}x{hm}x{nch}"
                 )
             missing = list(range(k, min(frame.index, k_sub)))
             if missing:
@@ -219,7 +228,13 @@ def capture_frame(
             rig.stop_trigger()
             rig.tick(max(0, s0 + int(np.ceil(params.frame_s / tau)) - rig.emulator.subframe))
         clog.info("all %d closures acknowledged", sent_cells)
-        t_cells = rig.lcos.exposure_time_s(tau, params.frame_s).astype(np.float32).ravel()
+        t_cells = rig.lcos.exposure_time_s(tau, params.frame_s).astype(np.float64).ravel()
+        # On the trigger clock: the measuring subframes (and the closures applied on
+        # them) start trigger_offset_s after the VET exposure.
+        off = params.trigger_offset_s
+        t_cells = np.where(
+            t_cells < params.frame_s, np.minimum(t_cells + off, params.frame_s), t_cells
+        ).astype(np.float32)
         exposure_time = cellmap.to_pixels(np.append(t_cells, np.float32(params.frame_s)))
         applied = rig.lcos.applied_subframe
         # Every commanded closure must have come back with an applied subframe.
@@ -278,6 +293,9 @@ def capture_frame(
             meta["radiance_scale"] = float(rig.scale)
         if measure is not None:
             meta["measure_subframes"] = np.diff(edges).tolist()
+        if dropped:
+            # Their light was estimated from the next frame (capture_stats says so).
+            meta["measure_dropped"] = sorted(dropped)
         meta["provenance"] = (provenance or []) + [provenance_entry("capture", [rig.name])]
         cap = Capture(
             I=img.astype(np.float32),
@@ -288,7 +306,7 @@ def capture_frame(
             measure=measure,
             measure_times=None
             if edges is None
-            else np.stack([edges[:-1] * tau, edges[1:] * tau], axis=1),
+            else np.stack([edges[:-1] * tau, edges[1:] * tau], axis=1) + off,
             truth=rig.truth,
             truth_motion=rig.truth_motion,
         )

@@ -47,6 +47,9 @@ ROWS = (
     "short",
     "vet-deblur-oracle",
 )
+#: Rows run only when asked for: hdr-static with the rig's parts ignored (a capture of a
+#: real rig reconstructed as if the rig were ideal: what its calibration is worth).
+EXTRA_ROWS = ("vet-static-ideal-rig",)
 REGIONS = ("all", "dark", "bright")
 STATS = ("median", "p99", "rms")
 
@@ -71,6 +74,7 @@ class Evaluation:
     radiance_scale: float = float("nan")
     reach_subframes: float | None = 1.0  # None: the radiance scale was given
     rig_changes: dict[str, Any] = field(default_factory=dict)
+    rig_profile: str = "ideal"  # stages.optics.rig_profile
     floor: float = 0.0  # truth level (scene units) at or below which pixels are not scored
     floor_e: float = 0.0  # the same, as electrons of a whole-frame VET exposure
 
@@ -83,14 +87,15 @@ def run_evaluation(
     rows: tuple[str, ...] = ROWS,
     progress: Callable[[str], None] | None = None,
     rig_changes: dict[str, Any] | None = None,
+    rig_profile: str = "ideal",
     scale: float | None = None,
     reach_subframes: float = 1.0,
     on_step: Callable[[int, int], None] | None = None,
 ) -> Evaluation:
     """Simulate, reconstruct and score the methods in ``rows`` (module docstring).
 
-    ``rig_changes`` are :class:`~stages.rig.RigParams` fields that differ from its
-    defaults; ``scale`` and ``reach_subframes`` set the radiance scale as in
+    ``rig_changes`` are :class:`~stages.rig.RigParams` fields that differ from the
+    rig of ``rig_profile`` (:func:`stages.optics.rig_profile`); ``scale`` and ``reach_subframes`` set the radiance scale as in
     :func:`stages.simulate.simulate`. Only the comparison captures that ``rows`` needs
     are rendered; the VET capture always is, since it defines the dark/bright split.
     ``progress(message)`` names each part as it starts (the simulation, then one per
@@ -102,13 +107,12 @@ def run_evaluation(
     from .hdr_static import hdr_static
     from .metrics import measurable_floor, stops_error
     from .motion import parse_motion
-    from .rig import RigParams
     from .scenes import load_scene
     from .simulate import simulate
 
-    unknown = [r for r in rows if r not in ROWS]
+    unknown = [r for r in rows if r not in ROWS + EXTRA_ROWS]
     if unknown or not rows:
-        raise ValueError(f"unknown methods {unknown}; choose from {', '.join(ROWS)}")
+        raise ValueError(f"unknown methods {unknown}; choose from {', '.join(ROWS + EXTRA_ROWS)}")
     say = progress or (lambda msg: None)
     step = on_step or (lambda done, total: None)
     units = 100 * (1 + len(rows))
@@ -121,7 +125,9 @@ def run_evaluation(
     h, w = scene.radiance.shape[:2]
     motion = parse_motion(motion_spec)
     changes = dict(rig_changes or {})
-    rig = RigParams(**{**changes, "sensor_size": (w, h)})
+    from .optics import rig_profile as make_rig
+
+    rig = make_rig(rig_profile, (w, h), **changes)
     renders = ["vet"] + [m for m in ("long", "short", "adaptive-attenuation") if m in rows]
     step(0, units)
     say(f"simulating {w}x{h} {motion.spec}")
@@ -151,12 +157,14 @@ def run_evaluation(
         radiance_scale=float(vet.radiance_scale),
         reach_subframes=float(reach_subframes) if scale is None else None,
         rig_changes=changes,
+        rig_profile=rig_profile,
     )
     ev.floor = measurable_floor(rig, ev.radiance_scale)
     ev.floor_e = ev.floor * ev.radiance_scale * rig.frame_s
     ev.runtime_s["simulate"] = sim_s
     plan: dict[str, Callable[[Callable[[int, int], None]], Any]] = {
         "vet-static": lambda p: (hdr_static(vet), None),
+        "vet-static-ideal-rig": lambda p: (hdr_static(vet, assume_ideal_rig=True), None),
         "burst-merge": lambda p: (burst_hdr(vet, p), None),
         "adaptive-attenuation": lambda p: (hdr_static(caps["adaptive-attenuation"]), None),
         "long": lambda p: (hdr_static(caps["long"]), None),
@@ -249,6 +257,8 @@ def results_markdown(ev: Evaluation) -> str:
 def rig_sentence(ev: Evaluation) -> str:
     """The rig and radiance scale the captures were rendered with, as one sentence."""
     defaults = "vet's default rig (the values `vet simulate --help` lists)"
+    if ev.rig_profile != "ideal":
+        defaults += f" with the parts of rig profile {ev.rig_profile}"
     if ev.rig_changes:
         rig = f"{defaults} except " + ", ".join(
             f"{k} = {v}" for k, v in sorted(ev.rig_changes.items())

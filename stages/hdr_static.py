@@ -38,9 +38,23 @@ CONTRADICTION_SIGMA = 4.0
 
 
 def effective_exposure(cap: Capture) -> np.ndarray:
-    """Light-weighted exposure A (T + eps (W - T)) in seconds, ``(H, W, 1)`` float32."""
+    """Light-weighted exposure A (T + eps (W - T)) in seconds, ``(H, W, 1)`` float32.
+
+    Through a real rig's LCoS (:mod:`stages.optics`) the closure's switching ramp, each
+    cell's own leakage and the relay blur enter (:func:`stages.optics.vet_exposure`).
+    """
     w = float(cap.meta.get("integration_s", cap.rig.frame_s))
-    eps = cap.rig.leakage if cap.meta.get("leakage_applies", True) else 0.0
+    leaks = cap.meta.get("leakage_applies", True)
+    if leaks and cap.ideal_T is not None:  # a tile of a frame: its equivalent T
+        t = cap.ideal_T.astype(np.float32)
+        return (t + np.float32(cap.rig.leakage) * (np.float32(w) - t))[..., None]
+    if leaks and not cap.rig.ideal_shutter and cap.transmittance is None:
+        from .optics import pixel_leakage, vet_exposure
+        from .physics import CellMap
+
+        eps_px = pixel_leakage(cap.rig, CellMap.for_rig(cap.rig, cap.shape)).astype(np.float64)
+        return vet_exposure(cap.T, eps_px, w, cap.rig)[..., None]
+    eps = cap.rig.leakage if leaks else 0.0
     t = cap.T.astype(np.float32)
     e = t + np.float32(eps) * (np.float32(w) - t)
     if cap.transmittance is not None:
@@ -90,13 +104,22 @@ def reconstruction(
     )
 
 
-def hdr_static(cap: Capture) -> HDRImage:
+def hdr_static(cap: Capture, assume_ideal_rig: bool = False) -> HDRImage:
     """Invert a capture assuming a still scene.
+
+    A real rig's parts (:mod:`stages.optics`, recorded in the capture's rig) enter: the
+    measuring images are fitted onto the VET grid through the measurement camera's
+    geometry, gain and vignetting (:func:`fit_through_geometry`), and the exposure holds
+    the switching ramp, each cell's leakage and the relay blur (:func:`effective_exposure`).
 
     Parameters
     ----------
     cap : Capture
         Any capture (VET or a comparison method).
+    assume_ideal_rig : bool
+        Ignore those parts (:func:`stages.optics.ideal_rig`): what reconstructing
+        without the rig's calibration gives. The measurement camera must then have the
+        VET sensor's size.
 
     Returns
     -------
@@ -104,6 +127,25 @@ def hdr_static(cap: Capture) -> HDRImage:
         ``radiance`` (H, W, C) float32 in scene units or DN/s, ``mask`` (H, W) uint8,
         ``exposure_time`` the capture's T.
     """
+    from .measure_grid import register_measure
+    from .optics import ideal_rig
+
+    if assume_ideal_rig:
+        from dataclasses import replace
+
+        if cap.measure is not None and cap.measure.shape[1:3] != cap.shape:
+            from .errors import InputError
+
+            raise InputError(
+                "the measuring images are not on the VET sensor's grid: the rig cannot be "
+                "assumed ideal"
+            )
+        cap = replace(cap, rig=ideal_rig(cap.rig))
+    raw = cap
+    cap = register_measure(cap)  # onto the VET grid (a real rig's measurement camera)
+    # Fitted through the camera's sampling when it came on the camera's own grid (a tile
+    # of a frame comes registered already: interpolated).
+    registered = cap.measure_noise is not None and raw.measure_noise is None
     rig = cap.rig
     g = np.float32(rig.gain_dn_per_e)
     w = float(cap.meta.get("integration_s", rig.frame_s))
@@ -125,13 +167,21 @@ def hdr_static(cap: Capture) -> HDRImage:
             # the bin lies far below that bound (a bright edge arrived after the bin: the
             # scene moved), the two disagree: the bin's value stands (the scene nearer
             # t = 0) but the pixel is flagged doubtful.
+            bound = rec  # where the bin clipped too: its top code, a lower bound
+            if registered:
+                # A measurement camera of its own: its bin fitted onto the VET grid
+                # through its geometry, where a still scene's pixel is at least the VET
+                # image's own bound in a clipped channel.
+                rec = fit_through_geometry(raw, rec, rate, signal_e, expo, vet_sat)
             contra = use & np.any((rec < rate - CONTRADICTION_SIGMA * rec_sd) & vet_sat, axis=2)
+            if registered:
+                rec = np.where(vet_sat, np.maximum(rec, rate), rec)
             rate = np.where(use[..., None], rec, rate)
             mask[use] = 1
             mask[contra] = 4
             mask[sat_px & ~rec_ok] = 2
             lower = sat_px & ~rec_ok
-            rate = np.where(lower[..., None], np.maximum(rec, rate), rate)
+            rate = np.where(lower[..., None], np.maximum(bound, rate), rate)
         else:
             mask[sat_px] = 2
     floor_rate = np.float32(NOISE_FLOOR_E) / expo
@@ -161,7 +211,9 @@ def _rate_from_measure(
         n0 = int(measure_bin_edges(cap.measure.shape[0], 8)[1])
     t0, t1 = float(cap.measure_times[0][0]), float(cap.measure_times[n0 - 1][1])
     dur = t1 - t0
-    n_sub = max(1, int(round(dur / rig.subframe_s)))
+    n_sub = int(cap.measure_counts()[:n0].sum())
+    if n_sub != max(1, int(round(dur / rig.subframe_s))):  # a dropped subframe among them
+        dur = n_sub * rig.subframe_s
     m0 = cap.measure[:n0].astype(np.float32).sum(axis=0)
     rate = (m0 / g - np.float32(rig.dark_current_e_s * dur)) / np.float32(
         dur * rig.measure_fraction
@@ -169,6 +221,50 @@ def _rate_from_measure(
     # Valid unless some subframe of the bin may have clipped; for a still pixel the
     # subframes are alike, so the bin mean per subframe tells.
     ok = ~bin_may_clip(m0 / np.float32(n_sub), rig)
-    var_e = np.maximum(m0 / g, 0) + np.float32(n_sub * rig.read_noise_e**2)
+    shot = read = np.float32(1.0)
+    if cap.measure_noise is not None:  # registered: vignetting and interpolation
+        shot, read = (v[..., None] for v in cap.measure_noise)
+    var_e = np.maximum(m0 / g, 0) * shot + np.float32(n_sub * rig.read_noise_e**2) * read
     sd = np.sqrt(var_e) / np.float32(dur * rig.measure_fraction)
     return rate.astype(np.float32), ok, sd.astype(np.float32)
+
+
+def fit_through_geometry(
+    raw: Capture,
+    start: np.ndarray,
+    vet_rate: np.ndarray,
+    vet_signal_e: np.ndarray,
+    expo: np.ndarray,
+    vet_sat: np.ndarray,
+) -> np.ndarray:
+    """The first measuring bin of a measurement camera with its own grid, inverted onto
+    the VET grid through its forward model, (H, W, C) e-/s.
+
+    Interpolating the bin onto the VET grid smooths what it saw (its pixels sample the
+    scene between the VET pixels). Instead the VET-grid rate is fitted to every measuring
+    pixel through the camera's sampling (:func:`stages.optics.fit_bin`) together with the
+    VET image's unclipped channels (``vet_rate``, variance from ``vet_signal_e`` over the
+    exposure ``expo``), from ``start`` (the interpolated bin, e-/s). ``raw``: the capture
+    as recorded (measuring images on the measurement grid); ``vet_sat`` (H, W, C): the
+    VET image's clipped channels.
+    """
+    from .formats.capture import measure_bin_edges
+    from .measure_grid import fit_bin
+    from .optics import MeasureGeometry
+
+    rig = raw.rig
+    geom = MeasureGeometry(rig)
+    n0 = 1
+    if raw.measure.dtype != np.float32 or raw.measure.shape[0] > 8:
+        n0 = int(measure_bin_edges(raw.measure.shape[0], 8)[1])
+    n_sub = int(raw.measure_counts()[:n0].sum())
+    dur = n_sub * rig.subframe_s
+    scale = dur * rig.measure_fraction
+    dark = rig.dark_current_e_s * dur
+    m0 = raw.measure[:n0].astype(np.float32).sum(axis=0)
+    # The VET image's pixels as electrons of the bin: rate * scale + dark.
+    var_v = (np.maximum(vet_signal_e, 0) + rig.read_noise_e**2) / np.square(expo.astype(np.float64))
+    w_v = np.where(vet_sat, 0.0, 1.0 / (var_v * scale**2))
+    y_v = vet_rate.astype(np.float64) * scale + dark
+    x = fit_bin(geom, m0, n_sub, start.astype(np.float64) * scale + dark, extra=(w_v, y_v))
+    return ((x - dark) / scale).astype(np.float32)

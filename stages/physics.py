@@ -105,13 +105,17 @@ def noise_streams(seed: int) -> tuple[np.random.SeedSequence, np.random.SeedSequ
 
 
 def expose(
-    lam_e: np.ndarray, rig: RigParams, noise: np.random.Generator | SensorNoise
+    lam_e: np.ndarray,
+    rig: RigParams,
+    noise: np.random.Generator | SensorNoise,
+    gain: float = 1.0,
 ) -> np.ndarray:
     """Expected electrons -> digital numbers through the full sensor chain (float32 DN,
     black-level subtracted: the code range is ``[-black_level_dn, max_dn]``).
 
     ``noise`` is a generator (a fresh, independent draw) or a :class:`SensorNoise` shared
-    with other exposures of the same pixels.
+    with other exposures of the same pixels. ``gain`` scales the conversion gain (the
+    measurement camera's ``measure_gain``).
     """
     shared = isinstance(noise, SensorNoise)
     e = noise.shot(lam_e) if shared else shot_noise(lam_e, noise)
@@ -119,7 +123,7 @@ def expose(
     if rig.read_noise_e > 0:
         z = noise.read_z if shared else noise.standard_normal(e.shape, dtype=np.float32)
         e += np.float32(rig.read_noise_e) * z
-    e *= rig.gain_dn_per_e
+    e *= rig.gain_dn_per_e * gain if gain != 1.0 else rig.gain_dn_per_e
     np.rint(e, out=e)
     np.clip(e, -rig.black_level_dn, rig.max_dn, out=e)
     return e
@@ -161,18 +165,29 @@ class CellMap:
 
     ``pixel_cell[y, x]`` is the row-major cell index (``cy * cells_w + cx``) whose area
     contains the pixel centre, or ``n_cells`` (a sentinel, never closed) where the pixel
-    lies outside the LCoS footprint.
+    lies outside the LCoS footprint. ``points`` (two (H, W) arrays) gives each pixel's
+    position in the homography's sensor coordinates instead of its own centre (the
+    measurement camera's pixels seen on the VET sensor, :mod:`stages.optics`).
     """
 
-    def __init__(self, homography: np.ndarray, lcos_cells: tuple[int, int], shape: tuple[int, int]):
+    def __init__(
+        self,
+        homography: np.ndarray,
+        lcos_cells: tuple[int, int],
+        shape: tuple[int, int],
+        points: tuple[np.ndarray, np.ndarray] | None = None,
+    ):
         h, w = shape
         cw, ch = lcos_cells
         self.shape = shape
         self.lcos_cells = (cw, ch)
         self.n_cells = cw * ch
         hinv = np.linalg.inv(np.asarray(homography, dtype=np.float64))
-        yy, xx = np.mgrid[0:h, 0:w]
-        pts = np.stack([xx.ravel() + 0.5, yy.ravel() + 0.5, np.ones(h * w)])
+        if points is None:
+            yy, xx = np.mgrid[0:h, 0:w]
+            pts = np.stack([xx.ravel() + 0.5, yy.ravel() + 0.5, np.ones(h * w)])
+        else:
+            pts = np.stack([points[0].ravel(), points[1].ravel(), np.ones(h * w)])
         cell = hinv @ pts
         cx = np.floor(cell[0] / cell[2]).astype(np.int64)
         cy = np.floor(cell[1] / cell[2]).astype(np.int64)
@@ -222,14 +237,33 @@ class ClosureController:
     exactly when any one of its pixels does, so each step only looks at pixels that
     crossed (one add, one compare, one scan over the frame) instead of reducing every
     cell; pixels of closed cells are retired so they never trigger again.
+
+    On a measurement camera of its own (:class:`stages.optics.MeasureGeometry`),
+    ``extras`` (CSR ``(starts, cells)``, pixel -> further cells it governs: cells smaller
+    than a pixel) closes those cells with the pixel (such pixels retire only when they
+    cross themselves), and ``dn_scale`` (H, W) flat-fields each frame (the camera's gain
+    and vignetting) before it is summed.
     """
 
     NEVER = np.iinfo(np.int32).max
     _RETIRED = np.float32(-3.0e38)
 
-    def __init__(self, rig: RigParams, cellmap: CellMap):
+    def __init__(
+        self,
+        rig: RigParams,
+        cellmap: CellMap,
+        extras: tuple[np.ndarray, np.ndarray] | None = None,
+        dn_scale: np.ndarray | None = None,
+    ):
         self.rig = rig
         self.cellmap = cellmap
+        self.dn_scale = None if dn_scale is None else np.asarray(dn_scale, np.float32)
+        self._extras = None
+        self._keep = None
+        if extras is not None and extras[1].size:
+            self._extras = (np.asarray(extras[0], np.int64), np.asarray(extras[1], np.int64))
+            counts = np.diff(self._extras[0])
+            self._keep = counts > 0  # pixels that govern extra cells
         h, w = cellmap.shape
         self.sum_dn = np.zeros((h, w), np.float32)
         self._flat = self.sum_dn.reshape(-1)
@@ -238,6 +272,8 @@ class ClosureController:
         self.threshold_dn = np.float32(rig.threshold_dn)
         # Pixels outside the LCoS footprint (sentinel cell) can never close: retire them.
         sentinel = cellmap.pixel_cell.reshape(-1) == cellmap.n_cells
+        if self._keep is not None:  # ... unless they govern cells of their own
+            sentinel &= ~self._keep
         self._flat[sentinel] = self._RETIRED
         # cell -> its pixels, as ranges into the cell-sorted pixel order.
         n = cellmap.n_cells + 1
@@ -249,13 +285,24 @@ class ClosureController:
 
     def step(self, frame_dn: np.ndarray, k: int) -> np.ndarray:
         """Add subframe ``k``; return indices of cells that crossed the threshold."""
-        np.add(self.sum_dn, brightest_channel(frame_dn), out=self.sum_dn, casting="unsafe")
+        frame = brightest_channel(frame_dn)
+        if self.dn_scale is not None:
+            frame = frame * self.dn_scale
+        np.add(self.sum_dn, frame, out=self.sum_dn, casting="unsafe")
         np.greater_equal(self.sum_dn, self.threshold_dn, out=self._crossed)
         if not self._crossed.any():
             return np.empty(0, np.int64)
         pix = np.flatnonzero(self._crossed)
-        new = np.unique(self.cellmap.pixel_cell.reshape(-1)[pix]).astype(np.int64)
-        new = new[self.close_subframe[new] == self.NEVER]
+        new = self.cellmap.pixel_cell.reshape(-1)[pix].astype(np.int64)
+        if self._extras is not None:
+            starts, cells = self._extras
+            sel = pix[self._keep[pix]]
+            if sel.size:
+                parts = [cells[starts[p] : starts[p + 1]] for p in sel]
+                new = np.concatenate([new, *parts])
+            self._flat[pix] = self._RETIRED
+        new = np.unique(new)
+        new = new[(self.close_subframe[new] == self.NEVER) & (new < self.cellmap.n_cells)]
         self.close_subframe[new] = k + 1 + self.rig.latency_subframes
         self._retire(new)
         return new
@@ -268,7 +315,10 @@ class ClosureController:
         starts = self._cell_start[cells]
         offsets = np.repeat(starts - np.concatenate(([0], np.cumsum(counts)[:-1])), counts)
         positions = offsets + np.arange(total)
-        self._flat[self.cellmap._order[positions]] = self._RETIRED
+        pix = self.cellmap._order[positions]
+        if self._keep is not None:
+            pix = pix[~self._keep[pix]]
+        self._flat[pix] = self._RETIRED
 
     def open_pixels(self, j: int) -> np.ndarray:
         """Boolean (H, W): pixels whose cell is open during subframe ``j``."""

@@ -34,6 +34,24 @@ def default_homography(
     return [[sx, 0.0, 0.0], [0.0, sy, 0.0], [0.0, 0.0, 1.0]]
 
 
+#: The fields of the parts of a real rig (:mod:`stages.optics`), ideal by default.
+REAL_RIG_PARTS = (
+    "measure_size",
+    "measure_homography",
+    "measure_k1",
+    "measure_k2",
+    "measure_gain",
+    "measure_vignetting",
+    "relay_blur_px",
+    "leakage_spread",
+    "leakage_seed",
+    "switch_s",
+    "trigger_offset_s",
+    "trigger_jitter_s",
+    "drop_rate",
+)
+
+
 @dataclass
 class RigParams:
     """Physical parameters of a VET rig (units in the names; times in seconds).
@@ -72,6 +90,41 @@ class RigParams:
         ADC pedestal. Recorded DN are black-level subtracted (as raw pipelines deliver
         them), so read noise on dark pixels keeps its sign down to ``-black_level_dn``
         instead of clipping at zero, which would bias dark sums upwards.
+
+    The parts of a real rig (:mod:`stages.optics` models them; every default is the
+    ideal rig, where they vanish):
+
+    measure_size : (int, int) or ()
+        Measurement camera, (width, height) in pixels; empty: the VET sensor's size.
+    measure_homography : 3x3 list or []
+        Measurement camera pixel coordinates (undistorted) -> VET sensor pixel
+        coordinates; empty: the identity.
+    measure_k1, measure_k2 : float
+        Radial distortion of the measurement camera about its image centre, in units of
+        its half-diagonal: an undistorted point at radius r is recorded at
+        ``r (1 + k1 r**2 + k2 r**4)``.
+    measure_gain : float
+        The measurement camera's conversion gain relative to the VET sensor's (DN per
+        electron, as a factor).
+    measure_vignetting : float
+        Light falloff of the measurement camera: ``(1 + a r**2) ** -2`` (cos^4-like) at
+        radius r in half-diagonals.
+    relay_blur_px : float
+        Gaussian sigma (VET pixels) of the LCoS image on the VET sensor.
+    leakage_spread : float
+        Per-cell leakage varies uniformly in ``leakage * [1 - s, 1 + s]`` (seeded by
+        ``leakage_seed``); 0: every cell leaks ``leakage``.
+    leakage_seed : int
+        Seed of the per-cell leakage map.
+    switch_s : float
+        Liquid-crystal switching time: a closing cell's transmittance falls linearly
+        from 1 to its leakage over this time.
+    trigger_offset_s : float
+        Measuring subframes start this long after the VET exposure.
+    trigger_jitter_s : float
+        Standard deviation of each measuring subframe's start about its nominal time.
+    drop_rate : float
+        Probability that a measuring subframe is dropped (never reaches the host).
     """
 
     frame_s: float = 0.99975
@@ -88,10 +141,24 @@ class RigParams:
     measure_fraction: float = 1.0
     homography: list[list[float]] = field(default_factory=list)
     black_level_dn: float = 64.0
+    measure_size: tuple[int, ...] = ()
+    measure_homography: list[list[float]] = field(default_factory=list)
+    measure_k1: float = 0.0
+    measure_k2: float = 0.0
+    measure_gain: float = 1.0
+    measure_vignetting: float = 0.0
+    relay_blur_px: float = 0.0
+    leakage_spread: float = 0.0
+    leakage_seed: int = 0
+    switch_s: float = 0.0
+    trigger_offset_s: float = 0.0
+    trigger_jitter_s: float = 0.0
+    drop_rate: float = 0.0
 
     def __post_init__(self) -> None:
         self.lcos_cells = (int(self.lcos_cells[0]), int(self.lcos_cells[1]))
         self.sensor_size = (int(self.sensor_size[0]), int(self.sensor_size[1]))
+        self.measure_size = tuple(int(v) for v in self.measure_size)
         if not self.homography:
             self.homography = default_homography(self.lcos_cells, self.sensor_size)
         self.validate()
@@ -120,6 +187,29 @@ class RigParams:
             (min(self.sensor_size) > 0, "sensor must have positive size"),
             (self.measure_fraction > 0, "measurement light fraction must be positive"),
             (self.black_level_dn >= 0, "black level must be non-negative"),
+            (
+                len(self.measure_size) == 0
+                or (len(self.measure_size) == 2 and min(self.measure_size) > 0),
+                "measurement camera size must be (width, height) in pixels",
+            ),
+            (abs(self.measure_k1) <= 1 and abs(self.measure_k2) <= 1, "distortion |k| <= 1"),
+            (self.measure_gain > 0, "measurement gain must be positive"),
+            (0 <= self.measure_vignetting <= 10, "vignetting must be in [0, 10]"),
+            (0 <= self.relay_blur_px <= 100, "relay blur must be in [0, 100] px"),
+            (0 <= self.leakage_spread <= 1, "leakage spread must be in [0, 1]"),
+            (
+                0 <= self.leakage * (1 + self.leakage_spread) < 1,
+                "leakage * (1 + leakage_spread) must be below 1",
+            ),
+            (0 <= self.switch_s <= self.frame_s, "switching time must be in [0, frame length]"),
+            (
+                0
+                <= self.trigger_offset_s
+                <= self.frame_s - self.n_subframes * self.subframe_s + 1e-12,
+                "trigger offset must fit in the frame after its whole subframes",
+            ),
+            (0 <= self.trigger_jitter_s <= self.subframe_s, "jitter must be in [0, subframe]"),
+            (0 <= self.drop_rate < 1, "drop rate must be in [0, 1)"),
         ]
         for ok, message in checks:
             if not ok:
@@ -127,6 +217,45 @@ class RigParams:
         h = np.asarray(self.homography, dtype=float)
         if h.shape != (3, 3) or not np.all(np.isfinite(h)) or abs(np.linalg.det(h)) < 1e-12:
             raise InputError("invalid rig: homography must be a finite, invertible 3x3 matrix")
+        if self.measure_homography:
+            m = np.asarray(self.measure_homography, dtype=float)
+            if m.shape != (3, 3) or not np.all(np.isfinite(m)) or abs(np.linalg.det(m)) < 1e-12:
+                raise InputError(
+                    "invalid rig: measure_homography must be a finite, invertible 3x3 matrix"
+                )
+
+    @property
+    def measure_shape(self) -> tuple[int, int]:
+        """The measurement camera's (height, width) in pixels."""
+        w, h = self.measure_size if self.measure_size else self.sensor_size
+        return int(h), int(w)
+
+    @property
+    def ideal_geometry(self) -> bool:
+        """Whether the measurement camera shares the VET sensor's pixel grid exactly."""
+        return (
+            self.measure_shape == (self.sensor_size[1], self.sensor_size[0])
+            and (
+                not self.measure_homography
+                or np.allclose(self.measure_homography, np.eye(3), rtol=0, atol=1e-12)
+            )
+            and self.measure_k1 == 0
+            and self.measure_k2 == 0
+            and self.measure_gain == 1
+            and self.measure_vignetting == 0
+        )
+
+    @property
+    def ideal_shutter(self) -> bool:
+        """Whether the LCoS is today's ideal one: sharp cells, one leakage, instant
+        switching, cameras triggered together."""
+        return (
+            self.relay_blur_px == 0
+            and self.leakage_spread == 0
+            and self.switch_s == 0
+            and self.trigger_offset_s == 0
+            and self.trigger_jitter_s == 0
+        )
 
     # Derived quantities -------------------------------------------------------------
     @property
@@ -159,9 +288,17 @@ class RigParams:
 
     # Serialisation -------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
+        """Every field as plain JSON values; the parts of a real rig only where they are
+        not ideal (absent means ideal, so the ideal rig's metadata is what it always was)."""
         d = dataclasses.asdict(self)
         d["lcos_cells"] = list(self.lcos_cells)
         d["sensor_size"] = list(self.sensor_size)
+        d["measure_size"] = list(self.measure_size)
+        for f in dataclasses.fields(self):
+            if f.name in REAL_RIG_PARTS:
+                ideal = f.default_factory() if f.default is dataclasses.MISSING else f.default
+                if d[f.name] == (list(ideal) if isinstance(ideal, tuple) else ideal):
+                    del d[f.name]
         return d
 
     @classmethod

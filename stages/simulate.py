@@ -40,6 +40,15 @@ import numpy as np
 
 from .formats.capture import Capture, measure_bin_edges, provenance_entry
 from .motion import Motion, TrajectoryMotion, trajectory_times
+from .optics import (
+    MeasureGeometry,
+    close_times,
+    pixel_leakage,
+    relay_blur,
+    slot_transmittance,
+    subframe_clock,
+    timing_rng,
+)
 from .physics import (
     CellMap,
     ClosureController,
@@ -122,11 +131,15 @@ def simulate(
     # The methods' images share one noise realisation (common random numbers).
     noise = SensorNoise(shape, np.random.default_rng(exposure_stream))
     cellmap = CellMap.for_rig(rig, (h, w)) if want & {"vet", "adaptive-attenuation"} else None
-    ctrl = ClosureController(rig, cellmap) if "vet" in want else None
+    real = RealRig(rig, cellmap, seed) if "vet" in want and not RealRig.ideal(rig) else None
+    ctrl = None
+    if "vet" in want:
+        ctrl = real.controller() if real is not None else ClosureController(rig, cellmap)
     vet_e = np.zeros(shape, np.float32) if "vet" in want else None
     full_e = np.zeros(shape, np.float32) if want & {"long", "adaptive-attenuation"} else None
     short_e = None
-    edges, measure = measure_store(k_sub, measure_bins, shape) if ctrl else (None, None)
+    meas_shape = (*rig.measure_shape, nch)
+    edges, measure = measure_store(k_sub, measure_bins, meas_shape) if ctrl else (None, None)
     bin_of = (
         np.searchsorted(edges, np.arange(k_sub), side="right") - 1 if edges is not None else None
     )
@@ -149,17 +162,23 @@ def simulate(
         frame_dn = None
         if ctrl is not None:
             rng_j = np.random.default_rng(sub_streams[j])
-            frame_dn = expose(step_e * meas_gain + dark_sub, rig, rng_j)
+            if real is None:
+                frame_dn = expose(step_e * meas_gain + dark_sub, rig, rng_j)
+            else:
+                frame_dn = real.measure(step_e * meas_gain, dark_sub, rng_j)
         return step_e, frame_dn
 
     for j, (step_e, frame_dn) in enumerate(_pipelined(render_subframe, k_sub)):
         if ctrl is not None:
-            if j > 0:
+            if real is not None:
+                trans[..., 0] = real.transmittance(ctrl, j * tau, (j + 1) * tau)
+            elif j > 0:
                 trans[..., 0] = np.where(ctrl.open_pixels(j), np.float32(1.0), eps)
             vet_e += step_e * trans
-            if measure is not None:
-                add_subframe(measure, bin_of[j], frame_dn)
-            ctrl.step(frame_dn, j)
+            if real is None or not real.dropped[j]:
+                if measure is not None:
+                    add_subframe(measure, bin_of[j], frame_dn)
+                ctrl.step(frame_dn, j)
         if full_e is not None:
             full_e += step_e
         if j == 0 and "short" in want:
@@ -169,7 +188,10 @@ def simulate(
     if tail_s > 1e-9:
         rate = rate_at(k_sub * tau + tail_s / 2)
         if ctrl is not None:
-            trans[..., 0] = np.where(ctrl.open_pixels(k_sub), np.float32(1.0), eps)
+            if real is not None:
+                trans[..., 0] = real.transmittance(ctrl, k_sub * tau, tf)
+            else:
+                trans[..., 0] = np.where(ctrl.open_pixels(k_sub), np.float32(1.0), eps)
             vet_e += rate * np.float32(tail_s) * trans
         if full_e is not None:
             full_e += rate * np.float32(tail_s)
@@ -203,18 +225,24 @@ def simulate(
     if ctrl is not None:
         img = expose(vet_e + np.float32(dark * tf), rig, noise)
         mt = None
+        counts = None
         if measure is not None:
-            mt = np.stack([edges[:-1] * tau, edges[1:] * tau], axis=1)
-        cap = Capture(
-            I=img,
-            T=ctrl.exposure_time(),
-            measure=measure,
-            measure_times=mt,
-            meta=meta_for("vet", tf, True),
-            **common,
-        )
+            off = rig.trigger_offset_s
+            mt = np.stack([edges[:-1] * tau + off, edges[1:] * tau + off], axis=1)
+            counts = np.diff(edges)
+        T = ctrl.exposure_time() if real is None else real.exposure_time(ctrl)
+        meta = meta_for("vet", tf, True)
+        if real is not None and real.dropped.any():
+            dropped = np.flatnonzero(real.dropped)
+            meta["measure_dropped"] = dropped.tolist()
+            if measure is not None:
+                lost = np.bincount(bin_of[dropped], minlength=len(counts))
+                keep = counts > lost
+                counts = (counts - lost)[keep]
+                measure, mt = measure[keep], mt[keep]
+        cap = Capture(I=img, T=T, measure=measure, measure_times=mt, meta=meta, **common)
         if measure is not None:
-            cap.meta["measure_subframes"] = np.diff(edges).tolist()
+            cap.meta["measure_subframes"] = counts.tolist()
         out["vet"] = cap
     if "long" in want:
         img = expose(full_e + np.float32(dark * tf), rig, noise)
@@ -290,6 +318,53 @@ def attenuation_from_previous_frame(
     cell_a = np.round(cell_a * 255.0) / 255.0
     cell_a = np.maximum(cell_a, rig.leakage)
     return cellmap.to_pixels(cell_a.astype(np.float32))
+
+
+class RealRig:
+    """The parts of a real rig (:mod:`stages.optics`) as a capture renders them: the
+    measurement camera's own grid, gain and vignetting, the host thresholding each cell on
+    the measuring pixels that image it, the VET sensor's blurred, leaky, slowly switching
+    LCoS, and the measurement camera's trigger clock (offset, jitter, dropped frames).
+    ``simulate`` and the emulated rig share it."""
+
+    def __init__(self, rig: RigParams, cellmap: CellMap, seed: int):
+        self.rig = rig
+        self.cellmap = cellmap
+        self.geom = None if rig.ideal_geometry else MeasureGeometry(rig)
+        self.eps = pixel_leakage(rig, cellmap).astype(np.float64)
+        self.starts, self.dropped = subframe_clock(rig, timing_rng(seed))
+
+    @staticmethod
+    def ideal(rig: RigParams) -> bool:
+        return rig.ideal_geometry and rig.ideal_shutter and rig.drop_rate == 0
+
+    def controller(self) -> ClosureController:
+        if self.geom is None:
+            return ClosureController(self.rig, self.cellmap)
+        cm, starts, cells = self.geom.host_cells(self.cellmap)
+        return ClosureController(self.rig, cm, extras=(starts, cells), dn_scale=self.geom.flat)
+
+    def measure(
+        self, light_e: np.ndarray, dark_e: np.float32, rng: np.random.Generator
+    ) -> np.ndarray:
+        """One measuring subframe in DN on the measurement grid from the light (e-) the
+        ideal measurement sensor would receive on the VET grid."""
+        if self.geom is None:
+            return expose(light_e + dark_e, self.rig, rng)
+        return self.geom.expose(light_e, dark_e, rng)
+
+    def transmittance(self, ctrl: ClosureController, a: float, b: float) -> np.ndarray:
+        """Mean transmittance over ``[a, b]`` s of each VET pixel, (H, W) float32."""
+        t = self.cellmap.to_pixels(close_times(ctrl.close_subframe, self.starts))
+        return relay_blur(slot_transmittance(t, a, b, self.eps, self.rig), self.rig.relay_blur_px)
+
+    def exposure_time(self, ctrl: ClosureController) -> np.ndarray:
+        """T as the rig records it: the subframe at which the device applied the closure,
+        on the nominal trigger clock (offset known, jitter not), (H, W) float32."""
+        rig = self.rig
+        c = ctrl.close_subframe.astype(np.float64)
+        t = np.minimum(c * rig.subframe_s + rig.trigger_offset_s, rig.frame_s)
+        return self.cellmap.to_pixels(t.astype(np.float32))
 
 
 def _pipelined(fn: Callable[[int], Any], n: int, workers: int = 2, depth: int = 4):

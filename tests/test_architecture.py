@@ -25,6 +25,8 @@ FLOORS = {
     "provenance": 0,
     "rig": 0,
     "physics": 0,
+    "optics": 0,
+    "measure_grid": 0,
     "formats": 0,
     "motion": 0,
     "scenes": 0,

@@ -19,6 +19,7 @@ LAYERS = (
     "frames",
     "acquire",
     "recorded",
+    "parts",
     "emulated",
     "run",
     "selftest",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from ._common import Progress, command, log, verbosity_options
-from .options import rig_options, rig_overrides
+from .options import rig_options, rig_overrides, rig_profile_choice, rig_profile_option
 from .outputs import Output, check_outputs, force_option
 from .params import SEED, SIZE
 
@@ -65,6 +65,7 @@ Example:
     help="Frames averaged per dark, open, closed and flat exposure.",
 )
 @rig_options
+@rig_profile_option
 @force_option
 @verbosity_options
 @command("calibrate")
@@ -90,6 +91,7 @@ def cli(
             rig_spec,
             frames_dir,
             rig_overrides(kwargs),
+            profile=rig_profile_choice(kwargs),
             size=size,
             true_homography=true_homography,
             seed=seed,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from ._common import Progress, command, log, verbosity_options
-from .options import rig_options, rig_overrides
+from .options import rig_options, rig_overrides, rig_profile_choice, rig_profile_option
 from .outputs import CAPTURE_FOLDER_FILES, Output, check_outputs, force_option
 from .params import MOTION, SEED, SIZE, MeasureBins, positive
 
@@ -71,6 +71,7 @@ Example:
     "--format", "fmt", type=click.Choice(["exr", "npz"]), default="exr", show_default=True
 )
 @rig_options
+@rig_profile_option
 @force_option
 @verbosity_options
 @command("capture")
@@ -99,6 +100,7 @@ def cli(
     check_outputs(
         [Output("-o", output, "folder", holds=CAPTURE_FOLDER_FILES, parents=False)], force
     )
+    profile = rig_profile_choice(kwargs)
     overrides = rig_overrides(kwargs)
     cal = None
     if calibration:
@@ -118,6 +120,7 @@ def cli(
         link_fault_rate=link_fault_rate,
         disconnect_at_subframe=disconnect_at,
         overrides=overrides,
+        profile=profile,
     )
     with open_rig(rig_spec, sim) as rig:
         if cal is not None and tuple(cal.sensor_size) != tuple(rig.params.sensor_size):

@@ -4,22 +4,30 @@ from __future__ import annotations
 
 import click
 
-from stages.evaluate import ROWS
+from stages.evaluate import EXTRA_ROWS, ROWS
 
 from ._common import Progress, command, log, verbosity_options
-from .options import rig_options, rig_overrides, scale_choice, scale_options
+from .options import (
+    rig_options,
+    rig_overrides,
+    rig_profile_choice,
+    rig_profile_option,
+    scale_choice,
+    scale_options,
+)
 from .outputs import REPORT_FOLDER_FILES, Output, check_outputs, force_option
 from .params import MOTION, SEED, SIZE
 
 
 def _methods(ctx: click.Context, param: click.Parameter, value: str) -> tuple[str, ...]:
     names = tuple(dict.fromkeys(v.strip() for v in value.split(",") if v.strip()))
-    bad = [n for n in names if n not in ROWS]
+    bad = [n for n in names if n not in ROWS + EXTRA_ROWS]
     if bad or not names:
         raise click.BadParameter(
-            f"unknown method {', '.join(bad) or '(none)'}; choose from {', '.join(ROWS)}"
+            f"unknown method {', '.join(bad) or '(none)'}; choose from "
+            f"{', '.join(ROWS + EXTRA_ROWS)}"
         )
-    return tuple(n for n in ROWS if n in names)
+    return tuple(n for n in ROWS + EXTRA_ROWS if n in names)
 
 
 @click.command(
@@ -34,7 +42,8 @@ and bright ones. Writes results.csv, results.md, errors.png, contact_sheet.png,
 exposure_time.png and motion.png into the folder given with -o.
 
 --methods runs a subset (the comparison methods alone take seconds; each deblur takes
-about a minute per megapixel). The rig and radiance-scale options are those of
+about a minute per megapixel); vet-static-ideal-rig (not run by default) is hdr-static
+with the rig's parts ignored, beside vet-static with them (--rig-profile realistic). The rig and radiance-scale options are those of
 `vet simulate`; the report states which were used.
 
 \b
@@ -58,6 +67,7 @@ Example:
 )
 @scale_options
 @rig_options
+@rig_profile_option
 @force_option
 @verbosity_options
 @command("evaluate")
@@ -85,6 +95,7 @@ def cli(
             progress=progress.note,
             on_step=progress,
             rig_changes=rig_overrides(kwargs),
+            rig_profile=rig_profile_choice(kwargs),
             scale=scale,
             reach_subframes=reach,
         )

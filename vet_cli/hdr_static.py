@@ -28,10 +28,17 @@ Example:
 @click.option(
     "-o", "--output", required=True, help="HDR image (.exr or .npz), or - for stdout (EXR)."
 )
+@click.option(
+    "--assume-ideal-rig",
+    is_flag=True,
+    help="Ignore the rig's measured parts (measurement camera geometry, gain and "
+    "vignetting, relay blur, per-cell leakage, switching time, trigger offset): "
+    "reconstruct as if it were the ideal rig, to see what they cost.",
+)
 @force_option
 @verbosity_options
 @command("hdr-static")
-def cli(capture: str, output: str, force: bool) -> None:
+def cli(capture: str, output: str, assume_ideal_rig: bool, force: bool) -> None:
     import numpy as np
 
     from stages.formats import read_capture, resolve_capture_path, write_hdr
@@ -41,7 +48,7 @@ def cli(capture: str, output: str, force: bool) -> None:
     check_outputs([Output("-o", output)], force)
     source = resolve_capture_path(capture)
     cap = read_capture(source)
-    img = hdr_static(cap)
+    img = hdr_static(cap, assume_ideal_rig=assume_ideal_rig)
     record_inputs(img.meta, [source])
     counts = np.bincount(img.mask.ravel(), minlength=4)
     log.debug("hdr-static: mask counts valid=%d recovered=%d saturated=%d floor=%d", *counts[:4])

@@ -43,6 +43,39 @@ def rig_options(f: Callable) -> Callable:
     return f
 
 
+def rig_profile_option(f: Callable) -> Callable:
+    """``--rig-profile``: the rig's optics and timing (:func:`rig_profile_choice`)."""
+    f = click.option(
+        "--rig-profile",
+        "rig_profile",
+        default="ideal",
+        show_default=True,
+        metavar="ideal|realistic|FILE.toml",
+        help="The rig's optics and timing: ideal (one pixel grid, sharp instant LCoS), "
+        "realistic (the published rig's two cameras, relay blur, per-cell leakage, "
+        "switching time, trigger offset, jitter and dropped frames) or a TOML file "
+        "([params] of the rig fields, optional profile = NAME to start from). Options "
+        "above override it.",
+    )(f)
+    return f
+
+
+def rig_profile_choice(kwargs: dict[str, Any]) -> str:
+    """Pop ``--rig-profile`` out of kwargs: a profile name or an existing file (else a
+    usage error)."""
+    import os
+
+    from stages.optics import PROFILES
+
+    spec = kwargs.pop("rig_profile", None) or "ideal"
+    if spec not in PROFILES and not os.path.isfile(spec):
+        raise click.BadParameter(
+            f"{spec!r}: choose {', '.join(PROFILES)} or an existing TOML file",
+            param_hint="'--rig-profile'",
+        )
+    return spec
+
+
 def rig_overrides(kwargs: dict[str, Any]) -> dict[str, Any]:
     """Pop the rig options out of a command's kwargs as RigParams field overrides."""
     out: dict[str, Any] = {}

@@ -5,7 +5,14 @@ from __future__ import annotations
 import click
 
 from ._common import Progress, command, log, verbosity_options
-from .options import rig_options, rig_overrides, scale_choice, scale_options
+from .options import (
+    rig_options,
+    rig_overrides,
+    rig_profile_choice,
+    rig_profile_option,
+    scale_choice,
+    scale_options,
+)
 from .outputs import Output, check_outputs, force_option
 from .params import MOTION, SEED, SIZE, MeasureBins
 
@@ -58,6 +65,7 @@ Example:
 )
 @scale_options
 @rig_options
+@rig_profile_option
 @force_option
 @verbosity_options
 @command("simulate")
@@ -74,17 +82,26 @@ def cli(
 ) -> None:
     from stages.formats import write_capture
     from stages.motion import parse_motion
-    from stages.rig import RigParams
+    from stages.optics import rig_profile
     from stages.scenes import load_scene
     from stages.simulate import simulate
 
     check_outputs([Output("-o", output)], force)
     scale, reach = scale_choice(kwargs)
+    profile = rig_profile_choice(kwargs)
     overrides = rig_overrides(kwargs)
     mot = parse_motion(motion)
     sc = load_scene(scene, size)
     h, w = sc.radiance.shape[:2]
-    rig = RigParams(sensor_size=(w, h), **overrides)
+    rig = rig_profile(profile, (w, h), **overrides)
+    if rig.measure_shape != (h, w) and measure_bins != 0:
+        from stages.errors import InputError
+
+        raise InputError(
+            f"the rig's measurement camera is {rig.measure_shape[1]}x{rig.measure_shape[0]}, "
+            f"the sensor {w}x{h}: a capture file stores measuring images of the sensor's "
+            "size only (--measure-bins 0 stores none)"
+        )
     log.debug("simulate: %s %dx%d %s, %d subframes", scene, w, h, mot.spec, rig.n_subframes)
     with Progress(f"simulate {method}") as progress:
         caps = simulate(
@@ -98,4 +115,5 @@ def cli(
             scale=scale,
             reach_subframes=reach,
         )
+    caps[method].meta["rig_profile"] = profile
     write_capture(output, caps[method])

@@ -19,6 +19,11 @@ The modules, each importing only those above it:
 - :mod:`.frames`: :class:`CalibrationFrames` and :func:`calibrate_frames`.
 - :mod:`.acquire`: driving a rig through the calibration sequence.
 - :mod:`.recorded`: reading a folder of recorded frames or camera raws.
+- :mod:`.parts`: the parts of a real rig (:mod:`stages.optics`): the measurement ->
+  VET mapping and distortion from a chessboard both cameras see, the switching time and
+  trigger offset from closures at a known subframe, the leakage map per pixel and per
+  cell (``python -m stages.calibrate.parts``; the emulated rig's mapping, trigger
+  offset and switching time in ``vet calibrate --rig sim --rig-profile``).
 - :mod:`.emulated`: the emulated rig and the errors against its truth.
 - :mod:`.run`: :func:`run_calibration`, what ``vet calibrate`` does.
 - :mod:`.selftest`: the acceptance point, ``python -m stages.calibrate --selftest``.

@@ -49,6 +49,10 @@ class Calibration:
         ``gain_ratio_median``.
     rig : dict
         The rig parameters used (gain etc.), :meth:`RigParams.to_dict`.
+    parts : dict
+        The parts of a real rig found (:mod:`.parts`): RigParams fields such as
+        ``measure_homography``, ``measure_k1``, ``measure_k2``, ``trigger_offset_s``,
+        ``switch_s``.
     provenance : dict
         Source (rig or folder), settings, frames used, skipped parts, software.
     """
@@ -66,6 +70,7 @@ class Calibration:
     summary: dict[str, float] = field(default_factory=dict)
     rig: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
+    parts: dict[str, Any] = field(default_factory=dict)
 
     _LAYERS = ("cell_x", "cell_y", "bias_dn", "dark_current_e_s", "leakage", "gain_ratio")
     _LAYER_NAMES = {
@@ -89,6 +94,7 @@ class Calibration:
             "homography_fit": self.homography_fit,
             "rig": self.rig,
             "provenance": self.provenance,
+            **({"parts": self.parts} if self.parts else {}),
             "layer_units": {
                 "cell_x": "cell",
                 "cell_y": "cell",
@@ -125,6 +131,7 @@ class Calibration:
                 homography_fit=dict(meta.get("homography_fit") or {}),
                 rig=dict(meta.get("rig") or {}),
                 provenance=dict(meta.get("provenance") or {}),
+                parts=dict(meta.get("parts") or {}),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise FormatError(f"{what}: calibration metadata is damaged ({exc})") from None
@@ -208,6 +215,7 @@ def calibration_changes(cal: Calibration, params: RigParams | None = None) -> di
         and s["gain_ratio_median"] > 0
     ):
         out["measure_fraction"] = float(s["gain_ratio_median"])
+    out.update(cal.parts)
     return out
 
 

@@ -24,6 +24,7 @@ def open_sim_calibration_rig(
     true_homography: np.ndarray | None = None,
     seed: int = 0,
     scene: str | None = None,
+    profile: str = "ideal",
 ) -> Iterator[Any]:
     """The emulated rig looking at a flat field (or ``scene``), ready for :func:`calibrate_rig`.
 
@@ -59,6 +60,7 @@ def open_sim_calibration_rig(
             if true_homography is None
             else np.asarray(true_homography).tolist(),
             overrides=dict(overrides or {}),
+            profile=profile,
         )
         rig = open_rig("sim", opts)
     try:
@@ -122,18 +124,22 @@ def calibrate_sim(
     scene: str | None = None,
     progress: ProgressFn | None = None,
     settings: AcquisitionSettings | None = None,
+    profile: str = "ideal",
 ) -> Calibration:
     """Calibrate the emulated rig and record how far the result is from its truth.
 
     Parameters are those of :func:`open_sim_calibration_rig`. The provenance gets
     ``emulated_truth`` (the true homography, leakage, dark current, gain ratio) and
-    ``errors_vs_truth`` (:func:`compare_to_truth`).
+    ``errors_vs_truth`` (:func:`compare_to_truth`). A rig ``profile`` with the parts of
+    a real rig (:func:`stages.optics.rig_profile`) has them found too, on frames the
+    emulated rig's physics records (:func:`.parts.calibrate_parts`): ``parts`` and
+    their errors against the truth.
 
     Returns
     -------
     Calibration
     """
-    with open_sim_calibration_rig(size, overrides, true_homography, seed, scene) as rig:
+    with open_sim_calibration_rig(size, overrides, true_homography, seed, scene, profile) as rig:
         cal = calibrate_rig(rig, progress, settings)
         p = rig.params
         true_h = np.asarray(p.homography if true_homography is None else true_homography, float)
@@ -146,4 +152,9 @@ def calibrate_sim(
     cal.provenance["errors_vs_truth"] = compare_to_truth(
         cal, true_h, p.leakage, p.dark_current_e_s, p.measure_fraction
     )
+    if not (p.ideal_geometry and p.ideal_shutter):
+        from .parts import calibrate_parts
+
+        cal.parts, errors = calibrate_parts(p, seed)
+        cal.provenance["errors_vs_truth"].update(errors)
     return cal

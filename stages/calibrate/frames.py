@@ -6,11 +6,10 @@ Gray code (:mod:`.gray_code`, :mod:`.geometry`), bias and dark current, leakage
 rate (all open) on the same flat field, per pixel, median: the ``measure_fraction`` of
 the rig.
 
-The measurement camera is not behind the LCoS, so the Gray code says nothing about it;
-on the emulated rig the measurement sensor and the VET sensor share their pixel grid.
-A real rig needs a second homography measurement -> VET, found from a textured target
-imaged by both (chessboard corners or ECC, ``cv2.findTransformECC`` with
-``MOTION_HOMOGRAPHY``); that is not implemented yet (see docs/calibration.md).
+The measurement camera is not behind the LCoS, so the Gray code says nothing about it:
+its mapping onto the VET sensor (homography and distortion) comes from a chessboard both
+cameras see (:mod:`.parts`, not yet a step of this sequence; the gain ratio here assumes
+the two grids coincide, see docs/calibration.md).
 """
 
 from __future__ import annotations

@@ -29,6 +29,7 @@ def run_calibration(
     scene: str | None = None,
     settings: AcquisitionSettings | None = None,
     progress: ProgressFn | None = None,
+    profile: str = "ideal",
 ) -> Calibration:
     """What ``vet calibrate`` does: from recorded ``frames``, the emulated rig, or a rig file.
 
@@ -41,9 +42,10 @@ def run_calibration(
         ``[params]`` and ``overrides`` then describe the rig.
     overrides : dict, optional
         RigParams overrides (on ``sim``: the emulated truth).
-    size, true_homography, seed, scene :
+    size, true_homography, seed, scene, profile :
         Emulated rig only: sensor (width, height); the true homography as text for
-        :func:`parse_homography`; noise seed; a scene instead of the flat field.
+        :func:`parse_homography`; noise seed; a scene instead of the flat field; the rig
+        profile (:func:`stages.optics.rig_profile`) whose parts are found too.
     settings : AcquisitionSettings, optional
     progress : callable(done, total), optional
 
@@ -68,7 +70,7 @@ def run_calibration(
         wh = size or RigParams().sensor_size
         cells = overrides.get("lcos_cells", RigParams().lcos_cells)
         true_h = None if true_homography is None else parse_homography(true_homography, cells, wh)
-        return calibrate_sim(wh, overrides, true_h, seed, scene, progress, settings)
+        return calibrate_sim(wh, overrides, true_h, seed, scene, progress, settings, profile)
     from ..devices.rigs import open_rig
 
     if overrides or true_homography or size or scene:

@@ -34,6 +34,7 @@ from ..errors import InputError
 from ..formats.capture import Capture, provenance_entry
 from ..formats.hdr import HDRImage
 from ..hdr_static import hdr_static, reconstruction
+from ..measure_grid import register_measure
 
 log = logging.getLogger(__name__)
 
@@ -274,6 +275,17 @@ def deblur(
 
     t_start = time.perf_counter()
     static = hdr_static(cap)
+    # A real rig's measurement camera: its images onto the VET grid, with their noise
+    # (stages.optics), for the motion estimate; the misfit fits its bins through the
+    # camera's sampling (stages.deblur.problem.observations, from the capture as recorded).
+    recorded = cap
+    cap = register_measure(cap)
+    if not cap.rig.ideal_shutter:  # on the whole frame, for tiles cropped from it too
+        from .problem import effective_T as _effective_T
+
+        cap = replace(
+            cap, ideal_T=_effective_T(cap, float(cap.meta.get("integration_s", cap.rig.frame_s)))
+        )
     L_init = output_to_rate(cap, static.radiance).astype(np.float32)
     layers = None
     if motion is None and motion_init == "truth":
@@ -302,10 +314,10 @@ def deblur(
     # method fits; the paper's method, which fits I only, keeps their hdr-static value.)
     bound_only = static.mask == 2
     saturated = np.isin(static.mask, (1, 2, 4)) if method == "paper" else bound_only
-    from .problem import observations
+    from .problem import effective_T, observations
 
     # What both methods take: the start image and motion, and the capture's timing.
-    start = (L_init, vel0, cap.T, tf, rig.subframe_s, rig.leakage)
+    start = (L_init, vel0, effective_T(cap, tf), tf, rig.subframe_s, rig.leakage)
     if method != "vet":
         tile = None
     tiled = _tiled(tile, cap.shape)
@@ -317,8 +329,15 @@ def deblur(
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
+        tiles_cap = cap
+        if not cap.rig.ideal_geometry and recorded.measure is not None:
+            # The tiles fit bins fitted through the camera's sampling on the whole frame.
+            from .problem import FIT_BINS
+
+            fitted = register_measure(recorded.time_bins(FIT_BINS), fit=True)
+            tiles_cap = replace(fitted, ideal_T=cap.ideal_T)
         radiance, tiling = deblur_in_tiles(
-            deblur, cap, vel0, motion_model, opts, tile, workers, scheduler, solve_progress
+            deblur, tiles_cap, vel0, motion_model, opts, tile, workers, scheduler, solve_progress
         )
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}
@@ -337,7 +356,7 @@ def deblur(
             affine_motion=opts.affine_motion and motion is None and motion_model == "affine",
             path_motion=opts.path_motion and motion is None and motion_model == "layer-paths",
         )
-        obs = observations(cap, use_measure=opts.use_measure, stream=opts.stream_fit)
+        obs = observations(recorded, use_measure=opts.use_measure, stream=opts.stream_fit)
         report: dict = {}
         L, vel = deblur_joint(
             obs,

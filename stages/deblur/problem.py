@@ -86,11 +86,17 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
     wt += rig.read_noise_e**2 + q
     np.divide(1.0, wt, out=wt)  # inverse variance
     wt[cap.I >= np.float32(rig.saturation_dn)] = 0.0  # clipped: as hdr-static tests it
-    wins = vet_windows(cap.T, tf, rig.subframe_s, rig.n_subframes, rig.leakage)
+    wins = vet_windows(effective_T(cap, tf), tf, rig.subframe_s, rig.n_subframes, rig.leakage)
     yb = wb = None
     wins_b: list[list[Window]] = []
     if use_measure and cap.keeps_stream and not stream:
         cap = cap.time_bins(FIT_BINS)
+    if not rig.ideal_geometry and cap.measure is not None:
+        from ..measure_grid import register_measure
+
+        # Onto the VET grid with their noise: bins inverted through the camera's
+        # sampling (interpolation would smooth them), a stream interpolated.
+        cap = register_measure(cap, fit=not cap.keeps_stream)
     if use_measure and cap.keeps_stream:
         return Observations(
             (h, w, c),
@@ -109,8 +115,13 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
         and cap.measure.shape[0] > 0
     ):
         nb = cap.measure.shape[0]
-        dur = np.diff(cap.measure_times, axis=1)[:, 0]
-        n_sub = np.maximum(np.rint(dur / rig.subframe_s), 1)
+        span = np.diff(cap.measure_times, axis=1)[:, 0]
+        n_sub = cap.measure_counts().astype(np.float64)
+        dur = n_sub * rig.subframe_s  # exposed: a dropped subframe leaves a gap in a bin
+        dur = np.where(n_sub == np.maximum(np.rint(span / rig.subframe_s), 1), span, dur)
+        shot_k = read_k = 1.0
+        if cap.measure_noise is not None:  # registered: vignetting and interpolation
+            shot_k, read_k = (v.astype(np.float64)[..., None] for v in cap.measure_noise)
         import cv2
 
         # One bin at a time into float32 (B H W, C): no float64 copy of all the bins.
@@ -124,7 +135,8 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
             # bins get shorter.
             wbb = cv2.blur(np.maximum(eb, 0), (3, 3), borderType=cv2.BORDER_REPLICATE)
             wbb = wbb.reshape(eb.shape)  # (cv2 drops a single channel's axis)
-            wbb += n_sub[b] * (rig.read_noise_e**2 + q)
+            wbb *= shot_k
+            wbb += n_sub[b] * (rig.read_noise_e**2 + q) * read_k
             np.divide(1.0, wbb, out=wbb)  # inverse variance
             wbb[bin_may_clip(cap.measure[b] / np.float32(n_sub[b]), rig)] = 0.0
             wb[rows] = wbb.reshape(-1, c)
@@ -133,8 +145,28 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
             yb[rows] = eb.reshape(-1, c)
         for b in range(nb):
             t0, t1 = (float(v) for v in cap.measure_times[b])
-            wins_b.append([Window(t0, t1, float(rig.measure_fraction))])
+            # A bin with a dropped subframe saw its span's light for fewer subframes.
+            wins_b.append([Window(t0, t1, float(rig.measure_fraction * dur[b] / span[b]))])
     return Observations((h, w, c), y.reshape(h * w, c), wt.reshape(h * w, c), wins, yb, wb, wins_b)
+
+
+def effective_T(cap: Capture, tf: float) -> np.ndarray:
+    """The exposure time the windows of the VET image take, (H, W) float32: the capture's
+    T, or through a real rig's LCoS (switching ramp, per-cell leakage, relay blur:
+    :func:`stages.optics.vet_exposure`) the T of the ideal shutter (mean leakage) that
+    exposes a still pixel alike."""
+    rig = cap.rig
+    if rig.ideal_shutter:
+        return cap.T
+    if cap.ideal_T is not None:
+        return cap.ideal_T
+    from ..optics import pixel_leakage, vet_exposure
+    from ..physics import CellMap
+
+    eps_px = pixel_leakage(rig, CellMap.for_rig(rig, cap.shape)).astype(np.float64)
+    e = vet_exposure(cap.T, eps_px, tf, rig).astype(np.float64)
+    t = (e - rig.leakage * tf) / (1.0 - rig.leakage)
+    return np.clip(t, 0.0, tf).astype(np.float32)
 
 
 def product(M: sp.csr_matrix, x: np.ndarray) -> np.ndarray:

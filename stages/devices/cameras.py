@@ -25,6 +25,16 @@ import numpy as np
 
 from ..errors import DeviceError, InputError
 from ..motion import Motion
+from ..optics import (
+    MeasureGeometry,
+    close_times,
+    leakage_map,
+    pixel_leakage,
+    relay_blur,
+    slot_transmittance,
+    subframe_clock,
+    timing_rng,
+)
 from ..physics import CellMap, SensorNoise, expose, noise_streams
 from ..rig import RigParams
 
@@ -230,7 +240,11 @@ class EmulatedMeasurementCamera(Camera):
         self.rig = rig
         self.source = _SceneSource(radiance, motion, scale)
         self.streams = noise_streams(seed)[1].spawn(rig.n_subframes + 1)
-        self.drop = set(drop)
+        # A real rig's measurement camera (stages.optics): its own grid, gain and
+        # vignetting; its trigger offset and the frames it drops (drop_rate).
+        self.geom = None if rig.ideal_geometry else MeasureGeometry(rig)
+        _, rig_drops = subframe_clock(rig, timing_rng(seed))
+        self.drop = set(drop) | set(np.flatnonzero(rig_drops).tolist())
         self.realtime = realtime
         self._frames: np.ndarray | None = None
         self._t0: float | None = None
@@ -243,7 +257,7 @@ class EmulatedMeasurementCamera(Camera):
             from concurrent.futures import ThreadPoolExecutor
 
             k_sub = self.rig.n_subframes
-            shape = self.source.radiance.shape
+            shape = (*self.rig.measure_shape, self.source.radiance.shape[2])
             self._frames = np.empty((k_sub, *shape), np.int16)  # DN fit: [-black, 4095]
             with ThreadPoolExecutor(max_workers=2) as ex:
                 for k, frame in enumerate(ex.map(self.render, range(k_sub))):
@@ -258,8 +272,11 @@ class EmulatedMeasurementCamera(Camera):
         rig = self.rig
         tau = rig.subframe_s
         lam = self.source.rate((k + 0.5) * tau) * np.float32(tau * rig.measure_fraction)
+        rng = np.random.default_rng(self.streams[min(k, len(self.streams) - 1)])
+        if self.geom is not None:
+            return self.geom.expose(lam, np.float32(rig.dark_current_e_s * tau), rng)
         lam += np.float32(rig.dark_current_e_s * tau)
-        return expose(lam, rig, np.random.default_rng(self.streams[min(k, len(self.streams) - 1)]))
+        return expose(lam, rig, rng)
 
     def _do_grab(self) -> Frame:
         import time
@@ -270,15 +287,16 @@ class EmulatedMeasurementCamera(Camera):
         if k >= self.rig.n_subframes:
             raise DeviceError("measurement camera: frame is over (no more subframes)")
         self._k += 1
+        stamp = k * self.rig.subframe_s + self.rig.trigger_offset_s
         if self._frames is None:
-            return Frame(self.render(k), k, k * self.rig.subframe_s)
+            return Frame(self.render(k), k, stamp)
         now = time.monotonic()
         if self._t0 is None:
             self._t0 = now - k * self.rig.subframe_s
         due = self._t0 + (k + 1) * self.rig.subframe_s
         if due > now:
             time.sleep(due - now)
-        return Frame(self._frames[k], k, k * self.rig.subframe_s)  # int16 DN, as a sensor delivers
+        return Frame(self._frames[k], k, stamp)  # int16 DN, as a sensor delivers
 
     def _do_close(self) -> None:
         self._frames = None
@@ -312,6 +330,12 @@ class EmulatedVETCamera(Camera):
         self.cellmap = CellMap(hom, rig.lcos_cells, (h, w))
         self.rng = np.random.default_rng(noise_streams(seed)[0])
         self._frames = 0
+        # A real rig's LCoS (stages.optics): per-cell leakage, relay blur, switching on
+        # the measurement camera's trigger clock (the same seeded clock as its camera's).
+        self.real = not rig.ideal_shutter
+        if self.real:
+            self.eps = pixel_leakage(rig, self.cellmap).astype(np.float64)
+            self.starts, _ = subframe_clock(rig, timing_rng(seed))
 
     def _do_open(self) -> None:
         self._frames = 0
@@ -321,6 +345,11 @@ class EmulatedVETCamera(Camera):
 
     def transmission(self, open_cells: np.ndarray) -> np.ndarray:
         """(H, W, 1) transmittance for a per-cell open mask (length ``n_cells``)."""
+        if self.real:
+            leak = leakage_map(self.rig).ravel()
+            per_cell = np.append(np.where(open_cells, np.float32(1.0), leak), np.float32(1.0))
+            trans = self.cellmap.to_pixels(per_cell.astype(np.float32))
+            return relay_blur(trans, self.rig.relay_blur_px)[..., None]
         per_cell = np.append(np.where(open_cells, 1.0, self.rig.leakage), 1.0).astype(np.float32)
         return self.cellmap.to_pixels(per_cell)[..., None]
 
@@ -333,12 +362,24 @@ class EmulatedVETCamera(Camera):
         per_pixel = self.cellmap.to_pixels(np.append(cs, np.iinfo(np.int32).max))[..., None]
         eps = np.float32(rig.leakage)
         acc = np.zeros(self.source.radiance.shape, np.float32)
+        t_close = None
+        if self.real:
+            t_close = self.cellmap.to_pixels(
+                np.append(close_times(close_subframe, self.starts), np.inf)
+            )
+
+        def trans_of(j: int, a: float, b: float) -> np.ndarray:
+            if t_close is None:
+                return np.where(per_pixel > j, np.float32(1.0), eps)
+            t = slot_transmittance(t_close, a, b, self.eps, rig)
+            return relay_blur(t, rig.relay_blur_px)[..., None]
+
         for j in range(k_sub):
-            trans = np.where(per_pixel > j, np.float32(1.0), eps)
+            trans = trans_of(j, j * tau, (j + 1) * tau)
             acc += self.source.rate((j + 0.5) * tau) * np.float32(tau) * trans
         tail = rig.frame_s - k_sub * tau
         if tail > 1e-9:
-            trans = np.where(per_pixel > k_sub, np.float32(1.0), eps)
+            trans = trans_of(k_sub, k_sub * tau, rig.frame_s)
             acc += self.source.rate(k_sub * tau + tail / 2) * np.float32(tail) * trans
         acc += np.float32(rig.dark_current_e_s * rig.frame_s)
         # A frame's noise is drawn as simulate draws the noise its methods share.

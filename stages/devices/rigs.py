@@ -78,6 +78,7 @@ class SimOptions:
     true_homography: list[list[float]] | None = None  # what calibration must discover
     realtime: bool = True
     overrides: dict[str, Any] = field(default_factory=dict)
+    profile: str = "ideal"  # stages.optics.rig_profile: ideal, realistic or a TOML file
 
 
 @dataclass
@@ -179,7 +180,9 @@ def open_sim_rig(opts: SimOptions) -> Rig:
     motion = parse_motion(opts.motion)
     scene = load_scene(opts.scene, opts.size)
     h, w = scene.radiance.shape[:2]
-    params = RigParams(sensor_size=(w, h), **opts.overrides)
+    from ..optics import rig_profile
+
+    params = rig_profile(opts.profile, (w, h), **opts.overrides)
     scale = radiance_scale(float(np.percentile(luminance(scene.radiance), 99.9)), params)
     emu = LCoSEmulator(
         params.lcos_cells,

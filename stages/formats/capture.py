@@ -84,6 +84,14 @@ class Capture:
     truth: np.ndarray | None = None  # (H, W, C) scene units
     truth_motion: np.ndarray | None = None  # (H, W, 2) px/s
     truth_layers: np.ndarray | None = None  # (H, W) layer index (motions along paths)
+    # Set by stages.optics.register_measure (never stored): the measuring images lie on
+    # the VET grid, and these (2, H, W) factors scale the ideal rig's shot and read
+    # variances of each of their pixels.
+    measure_noise: np.ndarray | None = None
+    # Set by stages.deblur (never stored): (H, W) the T of the ideal shutter that exposes
+    # a still pixel as the real rig's LCoS did (switching, per-cell leakage, relay blur),
+    # computed on the whole frame so that tiles cropped from it keep it right.
+    ideal_T: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -115,7 +123,24 @@ class Capture:
         )
         mt = np.asarray(self.measure_times, np.float64)
         times = np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
-        return replace(self, measure=bins, measure_times=times)
+        n = self.measure_counts()
+        meta = dict(self.meta)
+        meta["measure_subframes"] = [
+            int(n[a:b].sum()) for a, b in zip(edges[:-1], edges[1:], strict=True)
+        ]
+        return replace(self, measure=bins, measure_times=times, meta=meta)
+
+    def measure_counts(self) -> np.ndarray:
+        """Subframes summed in each measuring image, (B,) int: the metadata's
+        ``measure_subframes`` where it fits, else each time bin's length in subframes (a
+        bin spanning a dropped subframe holds one fewer than its span)."""
+        if self.measure is None or self.measure_times is None:
+            return np.zeros(0, int)
+        n = self.meta.get("measure_subframes")
+        if isinstance(n, list) and len(n) == self.measure.shape[0]:
+            return np.maximum(np.asarray(n, int), 1)
+        dur = np.diff(np.asarray(self.measure_times, np.float64), axis=1)[:, 0]
+        return np.maximum(np.rint(dur / self.rig.subframe_s), 1).astype(int)
 
     @property
     def method(self) -> str:
@@ -143,8 +168,11 @@ class Capture:
         if self.T.size and (float(self.T.min()) < 0 or float(self.T.max()) > tf * (1 + 1e-6)):
             raise FormatError(f"{what}: T outside [0, {tf}] s (the frame length)")
         if self.measure is not None:
-            if self.measure.ndim != 4 or self.measure.shape[1:] != self.I.shape:
-                raise FormatError(f"{what}: measuring images do not match I's size")
+            grids = (self.I.shape, (*self.rig.measure_shape, self.I.shape[2]))
+            if self.measure.ndim != 4 or self.measure.shape[1:] not in grids:
+                raise FormatError(
+                    f"{what}: measuring images match neither I's size nor the measurement camera's"
+                )
             if self.measure_times is None or self.measure_times.shape != (self.measure.shape[0], 2):
                 raise FormatError(f"{what}: measuring images lack their time bins")
         if self.truth_layers is not None:
@@ -159,6 +187,12 @@ class Capture:
 
     # --- conversion to/from the layered container ---------------------------------
     def to_layered(self) -> Layered:
+        if self.measure is not None and self.measure.shape[1:3] != self.I.shape[:2]:
+            raise FormatError(
+                f"measuring images of {self.measure.shape[2]}x{self.measure.shape[1]} cannot be "
+                f"stored beside a {self.I.shape[1]}x{self.I.shape[0]} VET image (a capture "
+                "file's layers share one size): the rig's measure_size must be its sensor_size"
+            )
         data = Layered()
         data.add("I", self.I, self.channels)
         data.add("T", self.T, ["Y"])

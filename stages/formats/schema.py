@@ -68,6 +68,20 @@ class Rig(BaseModel):
     measure_fraction: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=100)] = 1.0
     homography: Matrix3 | Annotated[list, Field(max_length=0)] = []
     black_level_dn: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=2**24)] = 64.0
+    # The parts of a real rig (stages.optics; the defaults are the ideal rig).
+    measure_size: SensorSize | Annotated[list, Field(max_length=0)] = []
+    measure_homography: Matrix3 | Annotated[list, Field(max_length=0)] = []
+    measure_k1: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-1, le=1)] = 0.0
+    measure_k2: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-1, le=1)] = 0.0
+    measure_gain: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=100)] = 1.0
+    measure_vignetting: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=10)] = 0.0
+    relay_blur_px: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=100)] = 0.0
+    leakage_spread: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=1)] = 0.0
+    leakage_seed: Annotated[int, Field(strict=True, ge=0, le=2**63 - 1)] = 0
+    switch_s: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=3600)] = 0.0
+    trigger_offset_s: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=3600)] = 0.0
+    trigger_jitter_s: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=3600)] = 0.0
+    drop_rate: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, lt=1)] = 0.0
 
     @model_validator(mode="after")
     def _consistent(self) -> Rig:
@@ -176,6 +190,16 @@ class CaptureMeta(_FileMeta):
         | None
     ) = None
     truth_trajectory: TruthTrajectory | None = None
+    # Measuring subframes the rig dropped (indices on the subframe clock; the stream
+    # holds the others, each with its own time bin).
+    measure_dropped: (
+        Annotated[
+            list[Annotated[int, Field(strict=True, ge=0, le=MAX_SUBFRAMES)]],
+            Field(max_length=MAX_SUBFRAMES),
+        ]
+        | None
+    ) = None
+    rig_profile: Str | None = None
 
     @model_validator(mode="after")
     def _bins(self) -> CaptureMeta:
@@ -221,6 +245,8 @@ class CalibrationMeta(_FileMeta):
     homography_fit: dict[str, Any] = {}
     rig: Rig | None = None
     provenance: dict[str, Any] = {}
+    # The parts of a real rig found (stages.calibrate.parts): rig fields, checked as such.
+    parts: Rig | None = None
     # Medians are NaN where nothing could be measured (calibration_changes skips them).
     leakage_median: float | None = None
     dark_current_median_e_s: float | None = None
