@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 VET    := $(BIN)/vet
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow fuzz bench evaluate-shared evaluate-stream evaluate-exposure batch-acceptance lint format sample-data test-hardware test-tools sample-hdr clean
+.PHONY: demo test test-slow fuzz bench evaluate-shared evaluate-stream evaluate-rig evaluate-exposure batch-acceptance lint format sample-data test-hardware test-tools sample-hdr clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -73,6 +73,11 @@ evaluate-shared: $(STAMP)
 # translate:30,0, an object on dark content, rotate:4 and shake:4; table and tally.
 evaluate-stream: $(STAMP)
 	$(BIN)/python -m tests.benchmarks.evaluate_stream eval_stream
+
+# Issue 20's deblur point (~15 min): the realistic rig profile, every shared scene at
+# 320x240, translate:30,0 and an object on dark content; deblur vs hdr-static and oracle.
+evaluate-rig: $(STAMP)
+	$(BIN)/python -m tests.benchmarks.evaluate_rig eval_rig
 
 # The comparison methods alone on the same runs: the scenes dimmed 1-16x (~12 min), then
 # DESIGN's brightness with seeds 0-4 (~12 min).
