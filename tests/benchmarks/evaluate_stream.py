@@ -17,7 +17,7 @@ deblur's median and RMS over the better of the two (at most 0.85); deblur's RMS 
 1.1x of the oracle's (deblur along the true motion).
 
 Run: python -m tests.benchmarks.evaluate_stream OUT_DIR [--size WxH] [--summary-only]
-[SCENE ...] (`make evaluate-stream` writes eval_stream/). Skips cleanly when ../shared
+[--motions TAG,...] [SCENE ...] (TAG: translate, object-dark, rotate, shake; default all) (`make evaluate-stream` writes eval_stream/). Skips cleanly when ../shared
 is absent.
 """
 
@@ -106,11 +106,14 @@ def main(argv: list[str]) -> int:
     out = Path(argv[0]) if argv and not argv[0].startswith("-") else Path("eval_stream")
     w, h = (int(v) for v in option_value(argv, "--size", "320x240").split("x"))
     names = [a for a in argv[1:] if a in SCENES] or SCENES
+    tags = option_value(argv, "--motions", "translate,object-dark,rotate,shake").split(",")
     out.mkdir(exist_ok=True)
     rows = []
     for name in names:
         path = SHARED_HDR / f"{name}.exr"
         for tag, spec in motions(path, w, h).items():
+            if tag not in tags:
+                continue
             folder = out / f"{name}_{tag}"
             if "--summary-only" in argv:
                 table = read_results(folder)
