@@ -241,8 +241,9 @@ class ClosureController:
     On a measurement camera of its own (:class:`stages.optics.MeasureGeometry`),
     ``extras`` (CSR ``(starts, cells)``, pixel -> further cells it governs: cells smaller
     than a pixel) closes those cells with the pixel (such pixels retire only when they
-    cross themselves), and ``dn_scale`` (H, W) flat-fields each frame (the camera's gain
-    and vignetting) before it is summed.
+    cross themselves), and ``dn_scale`` (H, W) flat-fields the camera's gain and
+    vignetting (a pixel's running sum is compared with ``threshold / dn_scale``, which is
+    the flat-fielded sum's test without scaling every frame).
     """
 
     NEVER = np.iinfo(np.int32).max
@@ -270,6 +271,9 @@ class ClosureController:
         self._crossed = np.empty((h, w), bool)
         self.close_subframe = np.full(cellmap.n_cells + 1, self.NEVER, dtype=np.int32)
         self.threshold_dn = np.float32(rig.threshold_dn)
+        if self.dn_scale is not None:  # (flat-fielding the sums: a threshold per pixel)
+            with np.errstate(divide="ignore"):
+                self.threshold_dn = (self.threshold_dn / self.dn_scale).astype(np.float32)
         # Pixels outside the LCoS footprint (sentinel cell) can never close: retire them.
         sentinel = cellmap.pixel_cell.reshape(-1) == cellmap.n_cells
         if self._keep is not None:  # ... unless they govern cells of their own
@@ -286,8 +290,6 @@ class ClosureController:
     def step(self, frame_dn: np.ndarray, k: int) -> np.ndarray:
         """Add subframe ``k``; return indices of cells that crossed the threshold."""
         frame = brightest_channel(frame_dn)
-        if self.dn_scale is not None:
-            frame = frame * self.dn_scale
         np.add(self.sum_dn, frame, out=self.sum_dn, casting="unsafe")
         np.greater_equal(self.sum_dn, self.threshold_dn, out=self._crossed)
         if not self._crossed.any():
@@ -297,9 +299,10 @@ class ClosureController:
         if self._extras is not None:
             starts, cells = self._extras
             sel = pix[self._keep[pix]]
-            if sel.size:
-                parts = [cells[starts[p] : starts[p + 1]] for p in sel]
-                new = np.concatenate([new, *parts])
+            if sel.size:  # the cells each selected pixel governs, gathered at once
+                counts = starts[sel + 1] - starts[sel]
+                first = np.repeat(starts[sel] - (np.cumsum(counts) - counts), counts)
+                new = np.concatenate([new, cells[first + np.arange(int(counts.sum()))]])
             self._flat[pix] = self._RETIRED
         new = np.unique(new)
         new = new[(self.close_subframe[new] == self.NEVER) & (new < self.cellmap.n_cells)]
