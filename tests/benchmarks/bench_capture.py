@@ -51,10 +51,11 @@ def bench_host_step() -> None:
     frames = _frames(shape, 16, rig, rng)
     n_cells = cm.n_cells
 
-    def run_vet_step():
-        ctrl = ClosureController(rig, cm)
+    def run_steps(make_ctrl, frames, n_sub):
+        """Each subframe's host step (threshold, encode) timed; and the cells closed."""
+        ctrl = make_ctrl()
         times, closed = [], 0
-        for k in range(rig.n_subframes):
+        for k in range(n_sub):
             f = frames[k % len(frames)]
             t0 = time.perf_counter()
             new = ctrl.step(f, k)
@@ -63,6 +64,9 @@ def bench_host_step() -> None:
             times.append(time.perf_counter() - t0)
             closed += new.size
         return times, closed
+
+    def run_vet_step():
+        return run_steps(lambda: ClosureController(rig, cm), frames, rig.n_subframes)
 
     def run_baseline():
         sums = np.zeros(shape, np.float32)
@@ -91,17 +95,11 @@ def bench_host_step() -> None:
     frames_m = _frames(real.measure_shape, 16, real, rng)
 
     def run_mapped_step():
-        ctrl = ClosureController(real, cm_m, extras=(starts, cells), dn_scale=geom.flat)
-        times, closed = [], 0
-        for k in range(real.n_subframes):
-            f = frames_m[k % len(frames_m)]
-            t0 = time.perf_counter()
-            new = ctrl.step(f, k)
-            if new.size:
-                encode_closures(new, n_cells)
-            times.append(time.perf_counter() - t0)
-            closed += new.size
-        return times, closed
+        return run_steps(
+            lambda: ClosureController(real, cm_m, extras=(starts, cells), dn_scale=geom.flat),
+            frames_m,
+            real.n_subframes,
+        )
 
     for name, fn in (
         ("vet ClosureController + encode", run_vet_step),
