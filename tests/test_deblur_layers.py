@@ -395,3 +395,20 @@ def test_deblur_of_a_rotation_starts_from_dense_flow_and_beats_hdr_static():
     assert dark_rms(img.radiance) < 0.85 * dark_rms(hdr_static(cap).radiance)
     speeds = np.hypot(vel[..., 0], vel[..., 1])
     assert np.percentile(speeds, 90) > 5.0 and len(np.unique(vel.reshape(-1, 2), axis=0)) > 100
+
+
+def test_median_where_is_nanmedian():
+    """The one-sort median of layer_cost equals numpy's nanmedian of the valid values (0
+    where none is), even and odd counts alike."""
+    import warnings
+
+    from stages.deblur.layers.alignment import median_where
+
+    rng = np.random.default_rng(3)  # seeded: a fixed random pattern of valid values
+    for nb in (1, 2, 7, 8):
+        a = (100 * rng.normal(size=(nb, 20, 30))).astype(np.float32)
+        valid = rng.random(a.shape) < 0.6
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ref = np.nan_to_num(np.nanmedian(np.where(valid, a, np.nan), axis=0))
+        assert np.array_equal(median_where(a, valid), ref)
