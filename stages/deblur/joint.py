@@ -223,10 +223,14 @@ def solve_image(
         # The measuring bins' products run on a second thread beside the VET image's
         # (scipy's sparse products release the GIL; the two carry similar work).
         bins = pool.submit(Ab.normal, x, wb) if Ab is not None else None
-        out = np.asarray(AT @ (w * _mv(A, x)).astype(np.float32), dtype=np.float64)
+        y = product(A, x)
+        y *= w  # (float32 of the float64 product: as (w * y).astype(float32))
+        out = np.asarray(AT @ y, dtype=np.float64)
         img = x.reshape(h, wd, c)
         gx, gy = grad(img)
-        smooth = grad_adjoint(sx * gx, sy * gy).reshape(n, c)
+        gx *= sx
+        gy *= sy
+        smooth = grad_adjoint(gx, gy).reshape(n, c)
         if bins is not None:
             out += bins.result()
         if S is not None:
@@ -240,8 +244,12 @@ def solve_image(
 
 
 def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
-    z2 = r * r * w
-    return w / (1.0 + z2 / (k * k))
+    """Cauchy weights ``w / (1 + r^2 w / k^2)`` (in place in one temporary)."""
+    z2 = r * r
+    z2 = np.multiply(z2, w, out=z2 if z2.dtype == np.result_type(z2, w) else None)
+    z2 /= k * k
+    z2 += 1.0
+    return np.divide(w, z2, out=z2)
 
 
 def moving_support(

@@ -138,16 +138,15 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
 
 
 def product(M: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
-    """``M @ x`` for ``x`` of shape (N, C), float32 (rows, C), one column at a time.
+    """``M @ x`` for ``x`` of shape (N, C), float32 (rows, C).
 
-    scipy's single-vector CSR kernel runs faster than its multi-vector one for a few
-    columns, and a float32 ``x`` keeps the product in the matrix's precision with no
-    upcast copy of ``M``.
+    A float32 ``x`` keeps the product in the matrix's precision with no upcast copy of
+    ``M``; several columns go through scipy's multi-vector kernel, which reads the
+    matrix once for all of them.
     """
-    out = np.empty((M.shape[0], x.shape[1]), np.float32)
-    for k in range(x.shape[1]):
-        out[:, k] = M @ np.ascontiguousarray(x[:, k], np.float32)
-    return out
+    if x.shape[1] == 1:
+        return (M @ np.ascontiguousarray(x[:, 0], np.float32)).reshape(-1, 1)
+    return np.asarray(M @ np.ascontiguousarray(x, np.float32), np.float32)
 
 
 class StackedOperator:
@@ -343,9 +342,10 @@ def pcg(
             callback(k, x)
         if np.all(np.sqrt(np.sum(r * r, axis=0)) < tol * r0):
             break
-        z = minv * r
+        np.multiply(minv, r, out=z)
         rz_new = np.sum(r * z, axis=0)
         beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)
         rz = rz_new
-        p = z + beta * p
+        p *= beta  # p = z + beta p, in place
+        p += z
     return x
