@@ -191,6 +191,7 @@ def deblur(
     tile: int | str | None = None,
     workers: int = 1,
     scheduler: str | None = None,
+    release_stream: bool = False,
 ) -> tuple[HDRImage, np.ndarray]:
     """Deblur a VET capture.
 
@@ -238,6 +239,11 @@ def deblur(
     workers, scheduler :
         Tiles run in-process (``workers`` 1, no ``scheduler``), else as Dask tasks on an
         embedded LocalCluster of ``workers`` processes or on ``scheduler``.
+    release_stream : bool
+        The caller needs no more of ``cap.measure``: method ``vet`` solved in one piece
+        sets it to None once it has made the time bins it fits, so that the whole
+        measuring stream is not held through the solve (``vet deblur`` does this; the
+        rest of ``cap`` is untouched).
 
     Returns
     -------
@@ -322,6 +328,8 @@ def deblur(
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
         obs = observations(cap, use_measure=opts.use_measure, stream=opts.stream_fit)
+        if release_stream:  # (the motion and the bins are made: the stream is done with)
+            cap.measure = None
         report: dict = {}
         L, vel = deblur_joint(
             obs,

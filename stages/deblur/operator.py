@@ -219,9 +219,10 @@ def blur_matrix(
         speed = np.hypot(vel[:, 0], vel[:, 1])
     wins = []
     for win in windows:
-        a = np.broadcast_to(np.asarray(win.start, np.float64), (h, w)).ravel()
-        b = np.broadcast_to(np.asarray(win.end, np.float64), (h, w)).ravel()
-        wt = np.broadcast_to(np.asarray(win.weight, np.float64), (h, w)).ravel()
+        # (Views: a window bound or weight given as one number takes no memory.)
+        a = np.broadcast_to(np.asarray(win.start, np.float64), (h, w)).reshape(-1)
+        b = np.broadcast_to(np.asarray(win.end, np.float64), (h, w)).reshape(-1)
+        wt = np.broadcast_to(np.asarray(win.weight, np.float64), (h, w)).reshape(-1)
         dur = np.maximum(b - a, 0.0)
         ns = np.ceil(speed * dur / step_px).astype(np.int64)
         if min_dt:

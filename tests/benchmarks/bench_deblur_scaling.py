@@ -53,7 +53,7 @@ def _deblur(path: str) -> None:
 
     t0 = time.perf_counter()
     cap = read_capture(path)
-    img, _ = deblur(cap, "vet")
+    img, _ = deblur(cap, "vet", release_stream=True)  # as vet deblur does
     dt = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6  # kB -> GB
     floor = measurable_floor(cap.rig, cap.radiance_scale)
