@@ -530,20 +530,24 @@ def deblur_joint(
         )
         iters_done += cg_iters
         L = np.where(free[:, None], np.maximum(L, floor), L)
-        r = _mv(A, L) - obs.y
-        rb = Ab.mv(L) - obs.yb if Ab is not None else None
-        w = _robust(r, obs.w, opts.cauchy_k)
-        if rb is not None:
-            wb = _robust(rb, obs.wb, opts.cauchy_k)
-        if S is not None:
-            ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
         ts = time.perf_counter()
-        if not last and opts.update_motion:
-            from .motion_steps import motion_step
+        if not last:  # (the robust weights and the motion step serve the next solve)
+            r = _mv(A, L) - obs.y
+            w = _robust(r, obs.w, opts.cauchy_k)
+            rb = None
+            if Ab is not None:
+                rb = Ab.mv(L)
+                rb -= obs.yb
+                wb = _robust(rb, obs.wb, opts.cauchy_k)
+            if S is not None:
+                ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
+            if opts.update_motion:
+                from .motion_steps import motion_step
 
-            vel = motion_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts)
-            if still is not None:
-                vel[still] = 0.0
+                vel = motion_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts)
+                if still is not None:
+                    vel[still] = 0.0
+            del r, rb  # (not held through the next solve)
         log.debug(
             "deblur: step %d build %.1fs solve %.1fs motion %.1fs",
             it,

@@ -248,24 +248,24 @@ def build_operators(
     has them, e.g. with trajectories; else read from ``velocity``)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    jobs = [(obs.windows, step_px)] + [
-        (wins, step_px_bins) for wins in (obs.windows_b if obs.yb is not None else [])
-    ]
     if layers is None:
         layers = motion_layers(velocity)  # once for all the operators of this motion
-    # Two threads: the assembly is numpy work that mostly releases the GIL.
+    # The VET image's operator alone (its assembly's temporaries are the largest), then
+    # the bins' on two threads: numpy work that mostly releases the GIL, whose
+    # temporaries are small.
+    A = blur_matrix(velocity, obs.windows, step_px=step_px, min_dt=subframe_s, layers=layers)
+    if obs.yb is None:
+        return A, None
     with ThreadPoolExecutor(max_workers=2) as pool:
         mats = list(
             pool.map(
-                lambda j: blur_matrix(
-                    velocity, j[0], step_px=j[1], min_dt=subframe_s, layers=layers
+                lambda wins: blur_matrix(
+                    velocity, wins, step_px=step_px_bins, min_dt=subframe_s, layers=layers
                 ),
-                jobs,
+                obs.windows_b,
             )
         )
-    A = mats[0]
-    Ab = StackedOperator(mats[1:]) if len(mats) > 1 else None
-    return A, Ab
+    return A, StackedOperator(mats) if mats else None
 
 
 def grad(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
