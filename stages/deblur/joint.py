@@ -200,7 +200,6 @@ def solve_image(
             data_diag = data_diag + Ab.diag_normal(wb)
         if S is not None:
             data_diag = data_diag + S.diag_normal(ws)
-    diag = data_diag.copy()
     rhs = np.asarray(AT @ (w * obs.y).astype(np.float32), dtype=np.float64)
     if Ab is not None:
         rhs += Ab.mvt_weighted(wb, obs.yb)
@@ -212,12 +211,15 @@ def solve_image(
     # contaminated by bright light passing by, so the prior decides there.
     prec = (expo / ref.reshape(n, c)).reshape(h, wd, c)
     sx, sy = _smooth_weights(L.reshape(h, wd, c), ref, prec, opts.lam, opts.edge_rel, opts.edge_snr)
+    del prec
     dsm = np.zeros((h, wd, c))
     dsm += sx
     dsm[:, 1:] += sx[:, :-1]
     dsm += sy
     dsm[1:] += sy[:-1]
-    diag = diag + dsm.reshape(n, c) + anchor_w
+    diag = data_diag + dsm.reshape(n, c)
+    del dsm
+    diag += anchor_w
 
     def apply_h(x: np.ndarray) -> np.ndarray:
         # The measuring bins' products run on a second thread beside the VET image's
@@ -231,6 +233,7 @@ def solve_image(
         gx *= sx
         gy *= sy
         smooth = grad_adjoint(gx, gy).reshape(n, c)
+        del gx, gy
         if bins is not None:
             out += bins.result()
         if S is not None:
