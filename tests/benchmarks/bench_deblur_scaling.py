@@ -6,6 +6,8 @@ runs in a fresh subprocess that reads it, so the peak resident memory it reports
 (``ru_maxrss``) is the deblur's alone (reading the capture included). Prints one row per
 size: megapixels, channels, seconds (wall clock, and CPU: user + system, steadier on a
 shared machine), peak GB and the dark-pixel RMS error (stops, as ``vet evaluate`` scores).
+The deblur runs as ``vet deblur`` runs it: ``--tile auto`` (frames over 1536 pixels on a
+side in tiles) and the capture's stream let go of once binned.
 
 Run: ``.venv/bin/python -m tests.benchmarks.bench_deblur_scaling [WxH[:mono|rgb] ...]``
 (default: mono at 640x512, 1280x1024 and 2560x2048 (0.3, 1.3 and 5.2 MP), and RGB at
@@ -57,7 +59,7 @@ def _deblur(path: str) -> None:
 
     t0, c0 = time.perf_counter(), cpu_s()
     cap = read_capture(path)
-    img, _ = deblur(cap, "vet", release_stream=True)  # as vet deblur does
+    img, _ = deblur(cap, "vet", tile="auto", release_stream=True)  # as vet deblur runs it
     dt, cpu = time.perf_counter() - t0, cpu_s() - c0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6  # kB -> GB
     floor = measurable_floor(cap.rig, cap.radiance_scale)
