@@ -61,14 +61,19 @@ def measure_rates(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     g = rig.gain_dn_per_e
     dur = np.diff(cap.measure_times, axis=1)[:, 0]
     n_sub = np.maximum(np.rint(dur / rig.subframe_s), 1)
-    shape = (-1, 1, 1, 1)
-    e = cap.measure / np.float32(g) - (rig.dark_current_e_s * dur).reshape(shape).astype(np.float32)
-    read_var = (n_sub * (rig.read_noise_e**2 + 1.0 / (12 * g * g))).reshape(shape)
-    var = np.maximum(e + (rig.dark_current_e_s * dur).reshape(shape), 0) + read_var
-    scale = (dur * rig.measure_fraction).reshape(shape)
-    rate = (e / scale).astype(np.float32)
-    sigma = (np.sqrt(var) / scale).astype(np.float32)
-    valid = ~bin_may_clip(cap.measure / n_sub.reshape(shape).astype(np.float32), rig)
+    shape = (1, 1, 1)  # (per bin: float64 arrays, so the variance is float64 as a whole)
+    dark = rig.dark_current_e_s * dur
+    read_var = n_sub * (rig.read_noise_e**2 + 1.0 / (12 * g * g))
+    scale = dur * rig.measure_fraction
+    rate = np.empty(cap.measure.shape, np.float32)
+    sigma = np.empty(cap.measure.shape, np.float32)
+    valid = np.empty(cap.measure.shape[:3], bool)
+    for b in range(cap.measure.shape[0]):  # one bin at a time: float64 temporaries of one
+        e = cap.measure[b] / np.float32(g) - np.float32(dark[b])
+        var = np.maximum(e + np.full(shape, dark[b]), 0) + np.full(shape, read_var[b])
+        rate[b] = e / np.full(shape, scale[b])
+        sigma[b] = np.sqrt(var) / np.full(shape, scale[b])
+        valid[b] = ~bin_may_clip(cap.measure[b] / np.float32(n_sub[b]), rig)
     return rate, sigma, valid
 
 

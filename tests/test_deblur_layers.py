@@ -416,3 +416,20 @@ def test_boundary_labels_are_refined_when_the_working_grid_is_the_frame(monkeypa
         int((ring & (truth != np.any(e.velocity != 0, axis=2))).sum()) for e in (refined, pooled)
     ]
     assert wrong[0] <= 0.95 * wrong[1], wrong
+
+
+def test_median_where_is_nanmedian():
+    """The one-sort median of layer_cost equals numpy's nanmedian of the valid values (0
+    where none is), even and odd counts alike."""
+    import warnings
+
+    from stages.deblur.layers.alignment import median_where
+
+    rng = np.random.default_rng(3)  # seeded: a fixed random pattern of valid values
+    for nb in (1, 2, 7, 8):
+        a = (100 * rng.normal(size=(nb, 20, 30))).astype(np.float32)
+        valid = rng.random(a.shape) < 0.6
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ref = np.nan_to_num(np.nanmedian(np.where(valid, a, np.nan), axis=0))
+        assert np.array_equal(median_where(a, valid), ref)

@@ -154,3 +154,19 @@ def test_a_stream_is_fitted_through_unbiased_time_bins():
     wb = obs.wb.reshape(FIT_BINS, h, w)[:, 4:-4, 4:-4]
     weighted = (wb * yb).sum(axis=0) / wb.sum(axis=0)
     assert abs(float(weighted.mean() / yb.mean()) - 1.0) < 0.005
+
+
+def test_release_stream_drops_the_stream_and_changes_nothing():
+    """deblur(..., release_stream=True), as vet deblur calls it, lets go of the capture's
+    measuring stream once it has made the time bins it fits (the stream is then not
+    held through the solve) and gives the same image."""
+    from stages.deblur import deblur
+
+    rig = RigParams(sensor_size=(96, 64))
+    cap = simulate(builtin_interior(96, 64), parse_motion("translate:20,0"), rig, seed=1)["vet"]
+    assert cap.keeps_stream
+    kept, _ = deblur(cap, "vet")
+    assert cap.measure is not None
+    released, _ = deblur(cap, "vet", release_stream=True)
+    assert cap.measure is None
+    np.testing.assert_array_equal(released.radiance, kept.radiance)

@@ -176,6 +176,7 @@ def cli(
             tile=tile if method == "vet" else None,
             workers=jobs,
             scheduler=scheduler,
+            release_stream=True,  # (cap's stream is not used again here)
         )
     record_inputs(img.meta, [source])
     log.debug("deblur: %s in %.1f s", img.meta["method"], img.meta["runtime_s"])

@@ -201,6 +201,7 @@ def deblur(
     tile: int | str | None = None,
     workers: int = 1,
     scheduler: str | None = None,
+    release_stream: bool = False,
 ) -> tuple[HDRImage, np.ndarray]:
     """Deblur a VET capture.
 
@@ -248,6 +249,11 @@ def deblur(
     workers, scheduler :
         Tiles run in-process (``workers`` 1, no ``scheduler``), else as Dask tasks on an
         embedded LocalCluster of ``workers`` processes or on ``scheduler``.
+    release_stream : bool
+        The caller needs no more of ``cap.measure``: method ``vet`` solved in one piece
+        sets it to None once it has made the time bins it fits, so that the whole
+        measuring stream is not held through the solve (``vet deblur`` does this; the
+        rest of ``cap`` is untouched).
 
     Returns
     -------
@@ -357,6 +363,9 @@ def deblur(
             path_motion=opts.path_motion and motion is None and motion_model == "layer-paths",
         )
         obs = observations(recorded, use_measure=opts.use_measure, stream=opts.stream_fit)
+        if release_stream:  # (the motion and the bins are made: the stream is done with)
+            cap.measure = None
+            recorded.measure = None
         report: dict = {}
         L, vel = deblur_joint(
             obs,

@@ -67,11 +67,11 @@ import logging
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 
+from .joint_options import EDGE_REL_MIN, JointOptions
 from .operator import Layers, motion_layers, static_rows
 from .problem import (
     Observations,
@@ -86,48 +86,6 @@ from .problem import (
 from .stream import StreamTerm, layer_motion, stream_term
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class JointOptions:
-    """Tuning of :func:`deblur_joint` (defaults used by ``vet deblur``)."""
-
-    outer: int = 3
-    cg_iters: int = 10
-    final_cg_iters: int = 15
-    lam: float = 0.15
-    edge_rel: float = 0.08
-    #: Edge scale in units of a pixel's relative noise, where below ``edge_rel`` (0: off).
-    edge_snr: float = 3.0
-    motion_alpha: float = 0.05
-    motion_step_max: float = 8.0
-    cauchy_k: float = 2.0
-    update_motion: bool = False
-    #: Refine a global affine motion (model ``affine``) by Gauss-Newton steps on its six
-    #: parameters between image steps (:func:`stages.deblur.affine.affine_step`);
-    #: :func:`stages.deblur.deblur` turns it off for other models and given motions.
-    affine_motion: bool = True
-    #: Outer steps when the affine motion is refined (each after the first refines it).
-    affine_outer: int = 5
-    #: Scale of each affine Gauss-Newton step (the image step absorbs part of a motion
-    #: error, so a plain step falls short).
-    affine_gain: float = 3.0
-    #: Refine a camera path (one layer along a trajectory, model ``layer-paths``) by a
-    #: Gauss-Newton step on its knots between image steps
-    #: (:func:`stages.deblur.path_steps.path_step`); off as ``affine_motion`` is.
-    path_motion: bool = True
-    use_measure: bool = True
-    #: Fit a stream capture through its aligned mean, not time bins (experimental).
-    stream_fit: bool = False
-    fuse_still: bool | None = None
-    step_px: float = 1.0
-    levels: int = 1
-    coarse_min_px: int = 48
-    history: list = field(default_factory=list)
-
-
-#: The smallest relative edge scale of the smoothness (``JointOptions.edge_snr``).
-EDGE_REL_MIN = 0.01
 
 
 def _smooth_weights(
@@ -213,7 +171,6 @@ def solve_image(
             data_diag = data_diag + Ab.diag_normal(wb)
         if S is not None:
             data_diag = data_diag + S.diag_normal(ws)
-    diag = data_diag.copy()
     rhs = np.asarray(AT @ (w * obs.y).astype(np.float32), dtype=np.float64)
     if Ab is not None:
         rhs += Ab.mvt_weighted(wb, obs.yb)
@@ -225,21 +182,29 @@ def solve_image(
     # contaminated by bright light passing by, so the prior decides there.
     prec = (expo / ref.reshape(n, c)).reshape(h, wd, c)
     sx, sy = _smooth_weights(L.reshape(h, wd, c), ref, prec, opts.lam, opts.edge_rel, opts.edge_snr)
+    del prec
     dsm = np.zeros((h, wd, c))
     dsm += sx
     dsm[:, 1:] += sx[:, :-1]
     dsm += sy
     dsm[1:] += sy[:-1]
-    diag = diag + dsm.reshape(n, c) + anchor_w
+    diag = data_diag + dsm.reshape(n, c)
+    del dsm
+    diag += anchor_w
 
     def apply_h(x: np.ndarray) -> np.ndarray:
         # The measuring bins' products run on a second thread beside the VET image's
         # (scipy's sparse products release the GIL; the two carry similar work).
         bins = pool.submit(Ab.normal, x, wb) if Ab is not None else None
-        out = np.asarray(AT @ (w * _mv(A, x)).astype(np.float32), dtype=np.float64)
+        y = product(A, x)
+        y *= w  # (float32 of the float64 product: as (w * y).astype(float32))
+        out = np.asarray(AT @ y, dtype=np.float64)
         img = x.reshape(h, wd, c)
         gx, gy = grad(img)
-        smooth = grad_adjoint(sx * gx, sy * gy).reshape(n, c)
+        gx *= sx
+        gy *= sy
+        smooth = grad_adjoint(gx, gy).reshape(n, c)
+        del gx, gy
         if bins is not None:
             out += bins.result()
         if S is not None:
@@ -253,8 +218,12 @@ def solve_image(
 
 
 def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
-    z2 = r * r * w
-    return w / (1.0 + z2 / (k * k))
+    """Cauchy weights ``w / (1 + r^2 w / k^2)`` (in place in one temporary)."""
+    z2 = r * r
+    z2 = np.multiply(z2, w, out=z2 if z2.dtype == np.result_type(z2, w) else None)
+    z2 /= k * k
+    z2 += 1.0
+    return np.divide(w, z2, out=z2)
 
 
 def moving_support(
@@ -551,29 +520,35 @@ def deblur_joint(
         )
         iters_done += cg_iters
         L = np.where(free[:, None], np.maximum(L, floor), L)
-        r = _mv(A, L) - obs.y
-        rb = Ab.mv(L) - obs.yb if Ab is not None else None
-        w = _robust(r, obs.w, opts.cauchy_k)
-        if rb is not None:
-            wb = _robust(rb, obs.wb, opts.cauchy_k)
-        if S is not None:
-            ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
         ts = time.perf_counter()
-        if not last and refine_path:
-            from .path_steps import path_step
+        if not last:  # (the robust weights and the motion step serve the next solve)
+            r = _mv(A, L) - obs.y
+            w = _robust(r, obs.w, opts.cauchy_k)
+            rb = None
+            if Ab is not None:
+                rb = Ab.mv(L)
+                rb -= obs.yb
+                wb = _robust(rb, obs.wb, opts.cauchy_k)
+            if S is not None:
+                ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
+            if refine_path:
+                from .path_steps import path_step
 
-            layers = path_step(obs, L, layers, r, w, rb, wb, frame_s)
-            vel = layers.velocity[layers.label].astype(np.float32)
-        elif not last and opts.affine_motion and layers is None:
-            from .affine import affine_step
+                layers = path_step(obs, L, layers, r, w, rb, wb, frame_s)
+                vel = layers.velocity[layers.label].astype(np.float32)
+            elif opts.affine_motion and layers is None:
+                from .affine import affine_step
 
-            vel = affine_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts, affine_state)
-        elif not last and opts.update_motion:
-            from .motion_steps import motion_step
+                vel = affine_step(
+                    obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts, affine_state
+                )
+            elif opts.update_motion:
+                from .motion_steps import motion_step
 
-            vel = motion_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts)
-            if still is not None:
-                vel[still] = 0.0
+                vel = motion_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts)
+                if still is not None:
+                    vel[still] = 0.0
+            del r, rb  # (not held through the next solve)
         log.debug(
             "deblur: step %d build %.1fs solve %.1fs motion %.1fs",
             it,

@@ -145,6 +145,11 @@ def _reflect(i: np.ndarray, n: int) -> np.ndarray:
     """Reflect integer indices into ``[0, n)`` like OpenCV's BORDER_REFLECT (fedcba|abcd)."""
     if n == 1:
         return np.zeros_like(i)
+    lo, hi = (int(i.min()), int(i.max())) if i.size else (0, 0)
+    if lo >= 0 and hi < n:
+        return i  # (all inside: the common case, no copy)
+    if lo >= -n and hi < 2 * n:  # (within one reflection: no modulo)
+        return np.where(i < 0, -1 - i, np.where(i >= n, 2 * n - 1 - i, i))
     period = 2 * n
     i = np.mod(i, period)
     return np.where(i >= n, period - 1 - i, i)
@@ -214,9 +219,10 @@ def blur_matrix(
         speed = np.hypot(vel[:, 0], vel[:, 1])
     wins = []
     for win in windows:
-        a = np.broadcast_to(np.asarray(win.start, np.float64), (h, w)).ravel()
-        b = np.broadcast_to(np.asarray(win.end, np.float64), (h, w)).ravel()
-        wt = np.broadcast_to(np.asarray(win.weight, np.float64), (h, w)).ravel()
+        # (Views: a window bound or weight given as one number takes no memory.)
+        a = np.broadcast_to(np.asarray(win.start, np.float64), (h, w)).reshape(-1)
+        b = np.broadcast_to(np.asarray(win.end, np.float64), (h, w)).reshape(-1)
+        wt = np.broadcast_to(np.asarray(win.weight, np.float64), (h, w)).reshape(-1)
         dur = np.maximum(b - a, 0.0)
         ns = np.ceil(speed * dur / step_px).astype(np.int64)
         if min_dt:
@@ -265,16 +271,30 @@ def blur_matrix(
             y0 = y0.astype(np.int64)
             xa, xb = _reflect(x0, w), _reflect(x0 + 1, w)
             ya, yb = _reflect(y0, h), _reflect(y0 + 1, h)
-            for yy, xx, ww in (
-                (ya, xa, (1 - fx) * (1 - fy)),
-                (ya, xb, fx * (1 - fy)),
-                (yb, xa, (1 - fx) * fy),
-                (yb, xb, fx * fy),
-            ):
+            # Corners with zero weight everywhere (a motion along one axis keeps one row
+            # or column of bilinear weights) are skipped whole.
+            has_fx, has_fy = bool(np.any(fx > 0)), bool(np.any(fy > 0))
+            gx, gy = 1 - fx, 1 - fy
+            ya *= w
+            corners = [(ya, xa, gx * gy)]
+            if has_fx:
+                corners.append((ya, xb, fx * gy))
+            if has_fy:
+                yb *= w
+                corners.append((yb, xa, gx * fy))
+                if has_fx:
+                    corners.append((yb, xb, fx * fy))
+            for yy, xx, ww in corners:
+                ww *= weight
                 keep = ww > 0
-                rows_l.append(local[keep])
-                cols_l.append((yy * w + xx)[keep])
-                vals_l.append((weight * ww)[keep])
+                if keep.all():
+                    rows_l.append(local)
+                    cols_l.append(yy + xx)
+                    vals_l.append(ww)
+                else:
+                    rows_l.append(local[keep])
+                    cols_l.append((yy + xx)[keep])
+                    vals_l.append(ww[keep])
         if rows_l:
             rows = np.concatenate(rows_l)
             cols = np.concatenate(cols_l)

@@ -170,16 +170,15 @@ def effective_T(cap: Capture, tf: float) -> np.ndarray:
 
 
 def product(M: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
-    """``M @ x`` for ``x`` of shape (N, C), float32 (rows, C), one column at a time.
+    """``M @ x`` for ``x`` of shape (N, C), float32 (rows, C).
 
-    scipy's single-vector CSR kernel runs faster than its multi-vector one for a few
-    columns, and a float32 ``x`` keeps the product in the matrix's precision with no
-    upcast copy of ``M``.
+    A float32 ``x`` keeps the product in the matrix's precision with no upcast copy of
+    ``M``; several columns go through scipy's multi-vector kernel, which reads the
+    matrix once for all of them.
     """
-    out = np.empty((M.shape[0], x.shape[1]), np.float32)
-    for k in range(x.shape[1]):
-        out[:, k] = M @ np.ascontiguousarray(x[:, k], np.float32)
-    return out
+    if x.shape[1] == 1:
+        return (M @ np.ascontiguousarray(x[:, 0], np.float32)).reshape(-1, 1)
+    return np.asarray(M @ np.ascontiguousarray(x, np.float32), np.float32)
 
 
 class StackedOperator:
@@ -281,24 +280,24 @@ def build_operators(
     has them, e.g. with trajectories; else read from ``velocity``)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    jobs = [(obs.windows, step_px)] + [
-        (wins, step_px_bins) for wins in (obs.windows_b if obs.yb is not None else [])
-    ]
     if layers is None:
         layers = motion_layers(velocity)  # once for all the operators of this motion
-    # Two threads: the assembly is numpy work that mostly releases the GIL.
+    # The VET image's operator alone (its assembly's temporaries are the largest), then
+    # the bins' on two threads: numpy work that mostly releases the GIL, whose
+    # temporaries are small.
+    A = blur_matrix(velocity, obs.windows, step_px=step_px, min_dt=subframe_s, layers=layers)
+    if obs.yb is None:
+        return A, None
     with ThreadPoolExecutor(max_workers=2) as pool:
         mats = list(
             pool.map(
-                lambda j: blur_matrix(
-                    velocity, j[0], step_px=j[1], min_dt=subframe_s, layers=layers
+                lambda wins: blur_matrix(
+                    velocity, wins, step_px=step_px_bins, min_dt=subframe_s, layers=layers
                 ),
-                jobs,
+                obs.windows_b,
             )
         )
-    A = mats[0]
-    Ab = StackedOperator(mats[1:]) if len(mats) > 1 else None
-    return A, Ab
+    return A, StackedOperator(mats) if mats else None
 
 
 def grad(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -375,9 +374,10 @@ def pcg(
             callback(k, x)
         if np.all(np.sqrt(np.sum(r * r, axis=0)) < tol * r0):
             break
-        z = minv * r
+        np.multiply(minv, r, out=z)
         rz_new = np.sum(r * z, axis=0)
         beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)
         rz = rz_new
-        p = z + beta * p
+        p *= beta  # p = z + beta p, in place
+        p += z
     return x

@@ -138,9 +138,15 @@ def deblur_tile(
     options: object | None,
 ) -> tuple[np.ndarray, str]:
     """One tile deblurred by ``solve`` (:func:`stages.deblur.deblur`) with a given motion:
-    (radiance (H, W, C) in output units, what its still pixels took)."""
+    (radiance (H, W, C) in output units, what its still pixels took). ``cap`` is the
+    tile's own crop (:func:`crop_capture`): its measuring stream is let go of once binned."""
     img, _vel = solve(
-        cap, method="vet", motion=velocity, motion_model=motion_model, options=options
+        cap,
+        method="vet",
+        motion=velocity,
+        motion_model=motion_model,
+        options=options,
+        release_stream=True,
     )
     return img.radiance, str(img.meta.get("still_pixels", ""))
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 
@@ -41,9 +39,34 @@ def components(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return v[..., 0], v[..., 1]
 
 
+def _grid(v: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates ``(yy, xx)``, float32: full (H, W) grids for a velocity field,
+    a column (H, 1) and a row (1, W) for one velocity (what depends on ``x + v c`` is
+    then computed once per row and column and broadcast, to the same values)."""
+    if np.ndim(v) > 1:
+        return tuple(np.mgrid[0:h, 0:w].astype(np.float32))
+    return (
+        np.arange(h, dtype=np.float32).reshape(h, 1),
+        np.arange(w, dtype=np.float32).reshape(1, w),
+    )
+
+
+def median_where(a: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Median over axis 0 of the floats ``a`` (B, H, W) where ``valid``, 0 where none is.
+
+    The value of ``np.nan_to_num(np.nanmedian(np.where(valid, a, np.nan), axis=0))``
+    (the mean of the two middle values for an even count), from one sort.
+    """
+    s = np.sort(np.where(valid, a, np.nan), axis=0)  # (NaN sorts last)
+    n = valid.sum(axis=0)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[None], axis=0)[0]
+    hi = np.take_along_axis(s, np.maximum(n // 2 - (n == 0), 0)[None], axis=0)[0]
+    return np.where(n > 0, (lo + hi) / a.dtype.type(2), 0).astype(a.dtype, copy=False)
+
+
 def inside(v: np.ndarray, centres: np.ndarray, h: int, w: int) -> np.ndarray:
     """Per bin, the scene points whose compensated position lies in the image, (B, H, W)."""
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    yy, xx = _grid(v, h, w)
     vx, vy = components(v)
     ok = np.empty((len(centres), h, w), bool)
     for b, c in enumerate(centres):
@@ -88,7 +111,7 @@ def interpolation_noise(v: np.ndarray, centres: np.ndarray, h: int, w: int) -> n
     ``sqrt(((1 - fx)**2 + fx**2) ((1 - fy)**2 + fy**2))`` times theirs: 1 at whole-pixel
     shifts, 1/2 half-way between four pixels.
     """
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    yy, xx = _grid(v, h, w)
     vx, vy = components(v)
     out = np.empty((len(centres), h, w), np.float32)
     for b, c in enumerate(centres):
@@ -119,10 +142,7 @@ def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None):
     if ins.all():
         med = np.median(comp, axis=0)
     else:
-        with np.errstate(all="ignore"):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                med = np.nan_to_num(np.nanmedian(np.where(ins, comp, np.nan), axis=0))
+        med = median_where(comp, ins)
     z2 = np.minimum(((comp - med[None]) / sig) ** 2, trunc)
     cost = np.where(ins, z2, 1.0).mean(axis=0)
     return cost.astype(np.float32)

@@ -99,7 +99,10 @@ def _groups(measure: np.ndarray, times: np.ndarray, rig: RigParams, n_groups: in
             continue
         acc = np.zeros(measure.shape[1:3], np.float32)
         for k in range(a, b):
-            acc += np.asarray(measure[k], np.float32).mean(axis=2)
+            if measure.shape[3] == 1:  # (the mean of one channel is itself)
+                acc += measure[k, ..., 0]
+            else:
+                acc += np.asarray(measure[k], np.float32).mean(axis=2)
         sums.append(acc)
         mids.append(0.5 * (float(times[a][0]) + float(times[b - 1][1])))
     per = k_n / max(len(sums), 1)
