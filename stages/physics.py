@@ -244,10 +244,11 @@ class ClosureController:
     cross themselves), and ``dn_scale`` (H, W) flat-fields the camera's gain and
     vignetting (a pixel's running sum is compared with ``threshold / dn_scale``, which is
     the flat-fielded sum's test without scaling every frame).
+    ``remaining_dn`` (H, W) is what each pixel still has to gather.
     """
 
     NEVER = np.iinfo(np.int32).max
-    _RETIRED = np.float32(-3.0e38)
+    _RETIRED = np.float32(3.0e38)  # (a remaining sum that no subframe reaches)
 
     def __init__(
         self,
@@ -266,14 +267,17 @@ class ClosureController:
             counts = np.diff(self._extras[0])
             self._keep = counts > 0  # pixels that govern extra cells
         h, w = cellmap.shape
-        self.sum_dn = np.zeros((h, w), np.float32)
-        self._flat = self.sum_dn.reshape(-1)
+        # What each pixel still has to gather before its cell closes (the threshold less
+        # its running sum), so that each step is one subtract and one compare with 0.
+        self.remaining_dn = np.empty((h, w), np.float32)
+        self._flat = self.remaining_dn.reshape(-1)
         self._crossed = np.empty((h, w), bool)
         self.close_subframe = np.full(cellmap.n_cells + 1, self.NEVER, dtype=np.int32)
         self.threshold_dn = np.float32(rig.threshold_dn)
+        self.remaining_dn[...] = self.threshold_dn
         if self.dn_scale is not None:  # (flat-fielding the sums: a threshold per pixel)
             with np.errstate(divide="ignore"):
-                self.threshold_dn = (self.threshold_dn / self.dn_scale).astype(np.float32)
+                self.remaining_dn[...] = np.minimum(self.threshold_dn / self.dn_scale, 3.0e38)
         # Pixels outside the LCoS footprint (sentinel cell) can never close: retire them.
         sentinel = cellmap.pixel_cell.reshape(-1) == cellmap.n_cells
         if self._keep is not None:  # ... unless they govern cells of their own
@@ -290,8 +294,8 @@ class ClosureController:
     def step(self, frame_dn: np.ndarray, k: int) -> np.ndarray:
         """Add subframe ``k``; return indices of cells that crossed the threshold."""
         frame = brightest_channel(frame_dn)
-        np.add(self.sum_dn, frame, out=self.sum_dn, casting="unsafe")
-        np.greater_equal(self.sum_dn, self.threshold_dn, out=self._crossed)
+        np.subtract(self.remaining_dn, frame, out=self.remaining_dn, casting="unsafe")
+        np.less_equal(self.remaining_dn, 0, out=self._crossed)
         if not self._crossed.any():
             return np.empty(0, np.int64)
         pix = np.flatnonzero(self._crossed)
