@@ -235,7 +235,7 @@ class ClosureController:
 
     A cell closes on its brightest pixel: its maximum running sum reaches the threshold
     exactly when any one of its pixels does, so each step only looks at pixels that
-    crossed (one add, one compare, one scan over the frame) instead of reducing every
+    crossed (one subtract, one compare, one scan over the frame) instead of reducing every
     cell; pixels of closed cells are retired so they never trigger again.
 
     On a measurement camera of its own (:class:`stages.optics.MeasureGeometry`),
