@@ -23,6 +23,18 @@ def _capture(motion: str, w: int = 96, h: int = 80, seed: int = 1):
     return simulate(scene, parse_motion(motion), rig, seed=seed, methods=["vet"])["vet"]
 
 
+def flat_dark_capture(w: int = 96, h: int = 80, signal: float = 2000.0, seed: int = 3):
+    """A still mono capture of a flat scene gathering ``signal`` electrons over the frame
+    (dark: every pixel exposed the whole frame)."""
+    from stages.scenes import Scene
+
+    rig = RigParams(sensor_size=(w, h))
+    scene = Scene(np.ones((h, w, 1), np.float32), ["Y"], "flat")
+    return simulate(
+        scene, parse_motion("none"), rig, seed=seed, methods=["vet"], scale=signal / rig.frame_s
+    )["vet"]
+
+
 def assert_adjoint(vel: np.ndarray, rng: np.random.Generator) -> None:
     """Dot-product test <A x, y> = <x, A^T y> of the operator for ``vel``, random closure
     times, the VET windows plus one measuring-bin window, and random images."""
@@ -112,14 +124,9 @@ def test_fuse_still_gives_the_noise_of_all_the_data_on_a_still_scene():
     # images together has the variance 1 / (1/var_vet + 1/var_measure), where the
     # measuring sum carries the read noise of all 131 subframes. Known answer from the
     # rig's parameters, not from the code.
-    from stages.scenes import Scene
-
     w, h, signal = 96, 80, 2000.0
-    rig = RigParams(sensor_size=(w, h))
-    scene = Scene(np.ones((h, w, 1), np.float32), ["Y"], "flat")
-    cap = simulate(
-        scene, parse_motion("none"), rig, seed=3, methods=["vet"], scale=signal / rig.frame_s
-    )["vet"]
+    cap = flat_dark_capture(w, h, signal)
+    rig = cap.rig
     assert np.all(cap.T == cap.T.max())
     static = hdr_static(cap).radiance[..., 0]
     default, _ = deblur(cap, "vet")

@@ -139,14 +139,10 @@ def test_a_stream_is_fitted_through_unbiased_time_bins():
     bin) the weighted mean of the bins is the plain mean to 0.5% (0.997 here; weights from
     each bin's own count gave 0.990)."""
     from stages.deblur.problem import FIT_BINS
-    from stages.scenes import Scene
+    from tests.test_deblur import flat_dark_capture
 
     w, h, signal = 96, 80, 2000.0
-    rig = RigParams(sensor_size=(w, h))
-    scene = Scene(np.ones((h, w, 1), np.float32), ["Y"], "flat")
-    cap = simulate(
-        scene, parse_motion("none"), rig, seed=3, methods=["vet"], scale=signal / rig.frame_s
-    )["vet"]
+    cap = flat_dark_capture(w, h, signal)
     assert cap.keeps_stream
     obs = observations(cap)
     assert obs.yb.shape == (FIT_BINS * h * w, 1)
