@@ -65,7 +65,7 @@ Example:
     help="Frames averaged per dark, open, closed and flat exposure.",
 )
 @rig_options
-@rig_profile_option
+@rig_profile_option(default="realistic")
 @force_option
 @verbosity_options
 @command("calibrate")

@@ -71,7 +71,7 @@ Example:
     "--format", "fmt", type=click.Choice(["exr", "npz"]), default="exr", show_default=True
 )
 @rig_options
-@rig_profile_option
+@rig_profile_option(default="realistic")
 @force_option
 @verbosity_options
 @command("capture")

@@ -43,12 +43,16 @@ def rig_options(f: Callable) -> Callable:
     return f
 
 
-def rig_profile_option(f: Callable) -> Callable:
-    """``--rig-profile``: the rig's optics and timing (:func:`rig_profile_choice`)."""
+def rig_profile_option(f: Callable | None = None, *, default: str = "ideal") -> Callable:
+    """``--rig-profile``: the rig's optics and timing (:func:`rig_profile_choice`).
+    ``default``: ``ideal`` (simulate, evaluate) or ``realistic`` (the emulated rig of
+    capture and calibrate, which stands for hardware)."""
+    if f is None:
+        return lambda g: rig_profile_option(g, default=default)
     f = click.option(
         "--rig-profile",
         "rig_profile",
-        default="ideal",
+        default=default,
         show_default=True,
         metavar="ideal|realistic|FILE.toml",
         help="The rig's optics and timing: ideal (one pixel grid, sharp instant LCoS), "
