@@ -210,3 +210,19 @@ def test_a_slow_host_shows_as_late_closures_because_the_trigger_keeps_real_time(
     late = cap.meta["capture_stats"]["late_closures"]
     assert calls and late["count"] >= calls[0] and late["max"] >= 2
     np.testing.assert_array_equal(cap.T, _t_from_record(record, cellmap, cap.rig))
+
+
+def test_the_emulated_rig_stands_for_hardware_by_default(tmp_path):
+    """vet capture --rig sim captures through the realistic profile unless told otherwise
+    (two cameras that do not line up, a soft slow LCoS); --rig-profile ideal gives the
+    one-grid rig of vet simulate."""
+    res = run_vet("capture", "--rig", "sim", "--size", "96x80", "-o", tmp_path / "real")
+    assert res.returncode == 0, res.stderr
+    rig = read_capture(tmp_path / "real").rig
+    assert not rig.ideal_geometry and not rig.ideal_shutter
+    res = run_vet(
+        "capture", "--rig", "sim", "--size", "96x80", "--rig-profile", "ideal", "-o", tmp_path / "i"
+    )
+    assert res.returncode == 0, res.stderr
+    rig = read_capture(tmp_path / "i").rig
+    assert rig.ideal_geometry and rig.ideal_shutter

@@ -4,8 +4,10 @@ Two methods share the forward model of :mod:`stages.deblur.operator`:
 
 ``vet`` (default, :mod:`stages.deblur.joint`)
     Layered motion (still background and translating layers, with occlusion) estimated
-    from all the measuring bins (:mod:`stages.deblur.layers`), or dense flow where the
-    motion is not layered (a rotation, a zoom: the layers' model check); noise-weighted
+    from all the measuring bins (:mod:`stages.deblur.layers`); where the motion is not
+    layered (the layers' model check), one affine field (a rotation, a zoom:
+    :mod:`stages.deblur.affine`) or dense flow; a camera shake along measured paths;
+    the affine field and a camera path refined on the misfit; noise-weighted
     (Poisson-Gaussian) misfit on the VET image and the measuring bins, conjugate-gradient
     image solves with iteratively reweighted robust weights, an edge-preserving relative
     prior; only pixels whose integration path moves are re-estimated, the rest keep
@@ -62,8 +64,11 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
     and rigidly translating layers, from long-baseline flow pooled over all measuring
     bins; model ``layers``), unless its model check finds that a dense field explains
     the bins clearly better (a rotation, a zoom, a non-rigid motion:
-    :func:`stages.deblur.layers.layered_model_check`), in which case the ``dis`` start
-    (model ``dense``); ``farneback``/``dis``: dense flow between bins
+    :func:`stages.deblur.layers.layered_model_check`), in which case one affine field
+    fitted to the dense one where it explains the bins about as well
+    (:data:`stages.deblur.affine.AFFINE_MISS_SHARE`; model ``affine``, whose six
+    parameters the solve refines), else the ``dis`` start (model ``dense``);
+    ``farneback``/``dis``: dense flow between bins
     (:func:`stages.flow.estimate_velocity`; model ``dense``);
     ``truth``: the simulator's true motion; ``zero``: none. Flow-based starts are zero when
     the measuring bins pass the still-scene test of :func:`stages.flow.moving_mask`. The
