@@ -5,7 +5,9 @@ reporting its wall time, peak memory (ru_maxrss of the process and of its worker
 processes), the dark-pixel RMS error in stops against the truth (as ``vet evaluate``
 scores) and the same error split into a band of 8 px on each side of every tile border
 (the seams) and the rest; the one-piece solve is scored on the same bands. Configurations: one solve (frames up to 1.3 MP only), tiles
-in-process, tiles on an embedded Dask LocalCluster of 2 workers.
+in-process (the solver's own two threads), tiles on a Dask cluster of 1 worker and on one of 2
+workers (one thread each, as ``vet deblur -j N`` runs them), so that "2 workers against 1" compares
+the same engine.
 
 Run: ``.venv/bin/python -m tests.benchmarks.bench_tiles [WxH] [TILE]`` (default 4096x3072
 with 1024 px tiles; ``make bench`` runs 2048x1536 with 1024 px tiles to stay short).
@@ -41,7 +43,7 @@ def _simulate(size: str, path: str) -> None:
     write_capture(path, cap["vet"])
 
 
-def _deblur(path: str, tile: str, workers: int, seam_tile: int) -> dict:
+def _deblur(path: str, tile: str, workers: str, seam_tile: int) -> dict:
     import numpy as np
 
     from stages.deblur import deblur
@@ -50,9 +52,34 @@ def _deblur(path: str, tile: str, workers: int, seam_tile: int) -> dict:
     from stages.metrics import measurable_floor, stops_error
 
     cap = read_capture(path)
+    cluster, scheduler = None, None
+    if workers.startswith("dask"):  # a cluster of that many workers, reached by its address
+        import logging
+
+        import distributed
+
+        from stages.cluster import WORKER_ENV
+
+        cluster = distributed.LocalCluster(
+            n_workers=int(workers[4:]),
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            env=dict(WORKER_ENV),
+            silence_logs=logging.ERROR,
+        )
+        scheduler = cluster.scheduler_address
     t0 = time.perf_counter()
-    img, vel = deblur(cap, tile=None if tile == "none" else int(tile), workers=workers)
+    img, vel = deblur(
+        cap,
+        tile=None if tile == "none" else int(tile),
+        workers=1 if cluster else int(workers),
+        scheduler=scheduler,
+    )
     dt = time.perf_counter() - t0
+    if cluster is not None:
+        cluster.close()
     rig = cap.rig
     floor = measurable_floor(rig, cap.radiance_scale)
 
@@ -102,15 +129,20 @@ def main(size: str = "2048x1536", tile: str = "1024") -> None:
         t0 = time.perf_counter()
         _child("simulate", size, path)
         print(f"simulate {size} mono translate:30,0: {time.perf_counter() - t0:.1f} s", flush=True)
-        runs = [("none", 1)] if w * h <= 1.4e6 else []
-        runs += [(tile, 1), (tile, 2)]
+        runs = [("none", "1")] if w * h <= 1.4e6 else []
+        runs += [(tile, "1"), (tile, "dask1"), (tile, "dask2")]
         results = {}
         for t, j in runs:
-            r = _child("deblur", path, t, str(j), tile)
+            r = _child("deblur", path, t, j, tile)
             if r is None:
                 continue
             results[(t, j)] = r
-            label = "one solve" if t == "none" else f"tiles {t} px, {j} worker(s)"
+            label = (
+                "one solve"
+                if t == "none"
+                else f"tiles {t} px, "
+                + (f"Dask, {j[4:]} worker(s)" if j.startswith("dask") else "in-process")
+            )
             seam = (
                 f", seam band {r['seam_dark_rms']:.4f} vs rest {r['rest_dark_rms']:.4f}"
                 if "seam_dark_rms" in r
@@ -125,9 +157,13 @@ def main(size: str = "2048x1536", tile: str = "1024") -> None:
                 ),
                 flush=True,
             )
-        one, two = results.get((tile, 1)), results.get((tile, 2))
+        local, one, two = (results.get((tile, j)) for j in ("1", "dask1", "dask2"))
         if one and two:
-            print(f"2 workers vs 1: {one['time_s'] / two['time_s']:.2f}x", flush=True)
+            print(f"Dask, 2 workers vs 1: {one['time_s'] / two['time_s']:.2f}x", flush=True)
+        if local and two:
+            print(
+                f"Dask, 2 workers vs in-process: {local['time_s'] / two['time_s']:.2f}x", flush=True
+            )
 
 
 if __name__ == "__main__":
@@ -137,6 +173,6 @@ if __name__ == "__main__":
             _simulate(*rest)
             print("{}")
         else:
-            print(json.dumps(_deblur(rest[0], rest[1], int(rest[2]), int(rest[3]))))
+            print(json.dumps(_deblur(rest[0], rest[1], rest[2], int(rest[3]))))
     else:
         main(*sys.argv[1:])
