@@ -73,8 +73,9 @@ def test_blending_a_constant_reproduces_it_and_cores_weigh_one():
 
 
 def test_resolve_tile():
-    assert resolve_tile("auto", (1024, 1280)) is None
-    assert resolve_tile("auto", (3072, 4096)) == 1024
+    assert resolve_tile("auto", (1024, 1024)) is None
+    assert resolve_tile("auto", (1024, 1280)) == 512
+    assert resolve_tile("auto", (3072, 4096)) == 512
     assert resolve_tile("none", (3072, 4096)) is None
     assert resolve_tile(256, (100, 100)) == 256
     with pytest.raises(InputError):

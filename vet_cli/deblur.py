@@ -93,7 +93,7 @@ Example:
     metavar="N|auto|none",
     callback=lambda ctx, param, value: _tile_value(value),
     help="Solve in overlapping N x N pixel tiles, the motion estimated once for the frame: "
-    "memory bounded by a tile. auto: tiles of 1024 on frames over 1536 pixels on a side; "
+    "memory bounded by a tile. auto: tiles of 512 on frames over 1024 pixels on a side; "
     "none: one solve. --method vet only.",
 )
 @click.option(

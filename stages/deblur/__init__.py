@@ -37,11 +37,15 @@ from ..formats.capture import Capture, provenance_entry
 from ..formats.hdr import HDRImage
 from ..hdr_static import hdr_static, reconstruction
 from ..measure_grid import register_measure
+from .operator import Layers
 
 log = logging.getLogger(__name__)
 
 METHODS = ("vet", "paper")
 MOTION_INITS = ("layers", "paths", "farneback", "dis", "truth", "zero")
+#: The default deblur looks for a changing camera path on frames of at most this many
+#: pixels (its registration holds 48 group images of the frame: 0.27 GB at 1280 x 1024).
+PATHS_MAX_PIXELS = 1 << 21
 
 
 def output_to_rate(cap: Capture, radiance: np.ndarray) -> np.ndarray:
@@ -207,6 +211,7 @@ def deblur(
     workers: int = 1,
     scheduler: str | None = None,
     release_stream: bool = False,
+    motion_paths: Layers | None = None,
 ) -> tuple[HDRImage, np.ndarray]:
     """Deblur a VET capture.
 
@@ -220,8 +225,8 @@ def deblur(
     motion_init : {'layers', 'paths', 'farneback', 'dis', 'truth', 'zero'}, optional
         Where the motion starts; default ``layers`` for the default method and Farnebäck
         (the paper's choice) for the published one. ``layers`` on a capture that keeps
-        its stream, solved in one piece, follows layers along paths measured from the
-        stream when the path most of the frame follows changes within the frame (camera
+        its stream, of at most :data:`PATHS_MAX_PIXELS` pixels (in one piece or in tiles),
+        follows layers along paths measured from the stream when the path most of the frame follows changes within the frame (camera
         shake: :func:`changing_motion` with ``main_only``); ``paths`` (experimental) when
         any region's does, else ``layers``; its detector also fires on some
         constant-velocity objects, where it does worse.
@@ -255,10 +260,14 @@ def deblur(
         Tiles run in-process (``workers`` 1, no ``scheduler``), else as Dask tasks on an
         embedded LocalCluster of ``workers`` processes or on ``scheduler``.
     release_stream : bool
-        The caller needs no more of ``cap.measure``: method ``vet`` solved in one piece
-        sets it to None once it has made the time bins it fits, so that the whole
-        measuring stream is not held through the solve (``vet deblur`` does this; the
-        rest of ``cap`` is untouched).
+        The caller needs no more of ``cap.measure``: method ``vet`` sets it to None once
+        it has made the time bins it fits (in one piece or for the tiles), so that the
+        whole measuring stream is not held through the solve (``vet deblur`` does this;
+        the rest of ``cap`` is untouched).
+
+    motion_paths : Layers, optional
+        With ``motion``: that motion as layers along their paths (a tile's crop of the
+        frame's measured camera path); the solve follows the paths (model ``layer-paths``).
 
     Returns
     -------
@@ -305,11 +314,18 @@ def deblur(
         if motion.shape != (*cap.shape, 2):
             raise InputError(f"the given motion is {motion.shape}, not {(*cap.shape, 2)}")
         vel0 = motion.astype(np.float32)
+        if motion_paths is not None:
+            if motion_paths.label.shape != cap.shape:
+                raise InputError("the given motion's layers do not match the capture's size")
+            layers = motion_paths
     else:
         if motion_init == "paths":
             layers = changing_motion(cap)
-        elif motion_init == "layers" and method == "vet" and not _tiled(tile, cap.shape):
-            # (the tiles solve with one velocity per pixel, not along paths)
+        elif (
+            motion_init == "layers"
+            and method == "vet"
+            and cap.shape[0] * cap.shape[1] <= PATHS_MAX_PIXELS
+        ):
             layers = changing_motion(cap, main_only=True)
         if layers is not None and motion_init in ("paths", "layers"):
             vel0 = layers.velocity[layers.label].astype(np.float32)
@@ -340,15 +356,31 @@ def deblur(
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
+        from .problem import FIT_BINS
+
         tiles_cap = cap
         if not cap.rig.ideal_geometry and recorded.measure is not None:
             # The tiles fit bins fitted through the camera's sampling on the whole frame.
-            from .problem import FIT_BINS
-
             fitted = register_measure(recorded.time_bins(FIT_BINS), fit=True)
             tiles_cap = replace(fitted, ideal_T=cap.ideal_T)
+        elif opts.use_measure and not opts.stream_fit and cap.keeps_stream:
+            # The bins each tile would fit, made once: a tile's crop of them is what it
+            # would bin from its crop of the stream, at an eighth of the memory.
+            tiles_cap = cap.time_bins(FIT_BINS)
+        if release_stream and tiles_cap.measure is not recorded.measure:
+            cap.measure = None
+            recorded.measure = None
         radiance, tiling = deblur_in_tiles(
-            deblur, tiles_cap, vel0, motion_model, opts, tile, workers, scheduler, solve_progress
+            deblur,
+            tiles_cap,
+            vel0,
+            motion_model,
+            opts,
+            tile,
+            workers,
+            scheduler,
+            solve_progress,
+            paths=layers if layers is not None and layers.trajectory is not None else None,
         )
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}

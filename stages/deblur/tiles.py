@@ -31,8 +31,8 @@ HALO_MARGIN_PX = 16
 #: Smallest core side a tile may have.
 MIN_TILE_PX = 64
 #: ``tile="auto"``: frames with a side over AUTO_ABOVE_PX are solved in tiles of AUTO_TILE_PX.
-AUTO_TILE_PX = 1024
-AUTO_ABOVE_PX = 1536
+AUTO_TILE_PX = 512
+AUTO_ABOVE_PX = 1024
 
 
 def resolve_tile(tile: int | str | None, shape: tuple[int, int]) -> int | None:
@@ -60,10 +60,19 @@ class Tile:
         return slice(y0, y1), slice(x0, x1)
 
 
-def halo_px(velocity: np.ndarray, frame_s: float, margin: int = HALO_MARGIN_PX) -> int:
-    """Pixels of halo that cover every integration path of ``velocity`` (H, W, 2) px/s."""
+def halo_px(
+    velocity: np.ndarray, frame_s: float, margin: int = HALO_MARGIN_PX, paths: Any = None
+) -> int:
+    """Pixels of halo that cover every integration path of ``velocity`` (H, W, 2) px/s,
+    and of ``paths`` (:class:`~stages.deblur.operator.Layers` with trajectories) if given:
+    the farthest any layer gets from its place at t = 0."""
     speed = float(np.hypot(velocity[..., 0], velocity[..., 1]).max()) if velocity.size else 0.0
-    return int(math.ceil(speed * frame_s)) + margin
+    reach = speed * frame_s
+    if paths is not None and paths.trajectory is not None:
+        disp = np.asarray(paths.trajectory[1], np.float64)
+        if disp.size:
+            reach = max(reach, float(np.hypot(disp[..., 0], disp[..., 1]).max()))
+    return int(math.ceil(reach)) + margin
 
 
 def tile_grid(shape: tuple[int, int], tile: int, halo: int) -> list[Tile]:
@@ -136,8 +145,10 @@ def deblur_tile(
     velocity: np.ndarray,
     motion_model: str,
     options: object | None,
+    paths: Any = None,
 ) -> tuple[np.ndarray, str]:
-    """One tile deblurred by ``solve`` (:func:`stages.deblur.deblur`) with a given motion:
+    """One tile deblurred by ``solve`` (:func:`stages.deblur.deblur`) with a given motion
+    (and its layers along paths, cropped to the tile, when the frame's motion has them):
     (radiance (H, W, C) in output units, what its still pixels took). ``cap`` is the
     tile's own crop (:func:`crop_capture`): its measuring stream is let go of once binned."""
     img, _vel = solve(
@@ -147,6 +158,7 @@ def deblur_tile(
         motion_model=motion_model,
         options=options,
         release_stream=True,
+        motion_paths=paths,
     )
     return img.radiance, str(img.meta.get("still_pixels", ""))
 
@@ -159,11 +171,14 @@ def _deblur_tile_on_worker(*args: Any) -> tuple[np.ndarray, str]:
 
 
 def _tile_jobs(
-    cap: Capture, velocity: np.ndarray, tiles: list[Tile]
-) -> Iterator[tuple[Capture, np.ndarray]]:
+    cap: Capture, velocity: np.ndarray, tiles: list[Tile], paths: Any = None
+) -> Iterator[tuple[Capture, np.ndarray, Any]]:
     for t in tiles:
         ys, xs = t.slices()
-        yield crop_capture(cap, t), np.ascontiguousarray(velocity[ys, xs])
+        crop = None
+        if paths is not None:
+            crop = dataclasses.replace(paths, label=np.ascontiguousarray(paths.label[ys, xs]))
+        yield crop_capture(cap, t), np.ascontiguousarray(velocity[ys, xs]), crop
 
 
 def deblur_in_tiles(
@@ -176,15 +191,18 @@ def deblur_in_tiles(
     workers: int = 1,
     scheduler: str | None = None,
     progress: Callable[[int, int], None] | None = None,
+    paths: Any = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Deblur ``cap`` tile by tile with the whole frame's ``velocity`` (H, W, 2) px/s,
-    each tile by ``solve`` (:func:`stages.deblur.deblur`, passed in by its caller).
+    each tile by ``solve`` (:func:`stages.deblur.deblur`, passed in by its caller);
+    ``paths``: that motion as :class:`~stages.deblur.operator.Layers` along their
+    trajectories (a measured camera path), each tile solved along its crop of them.
 
     Returns the blended radiance (H, W, C) in output units and a record ``{"size",
     "halo_px", "count", "executor", "workers", "still_pixels"}``.
     """
     tf = float(cap.meta.get("integration_s", cap.rig.frame_s))
-    halo = halo_px(velocity, tf)
+    halo = halo_px(velocity, tf, paths=paths)
     tiles = tile_grid(cap.shape, tile, halo)
     h, w = cap.shape
     acc = np.zeros((h, w, cap.I.shape[2]), np.float32)
@@ -193,7 +211,7 @@ def deblur_in_tiles(
     still: set[str] = set()
     for i, (radiance, still_pixels) in _run(
         solve,
-        _tile_jobs(cap, velocity, tiles),
+        _tile_jobs(cap, velocity, tiles, paths),
         len(tiles),
         motion_model,
         options,
@@ -221,7 +239,7 @@ def deblur_in_tiles(
 
 def _run(
     solve: Callable[..., Any],
-    jobs: Iterator[tuple[Capture, np.ndarray]],
+    jobs: Iterator[tuple[Capture, np.ndarray, Any]],
     n: int,
     motion_model: str,
     options: object | None,
@@ -234,8 +252,8 @@ def _run(
     ``workers <= 1`` and no ``scheduler``, else as Dask tasks."""
     if scheduler is None and workers <= 1:
         info["executor"] = "in-process"
-        for i, (cap, vel) in enumerate(jobs):
-            yield i, deblur_tile(solve, cap, vel, motion_model, options)
+        for i, (cap, vel, paths) in enumerate(jobs):
+            yield i, deblur_tile(solve, cap, vel, motion_model, options, paths)
             if progress:
                 progress(i + 1, n)
         return
@@ -245,10 +263,17 @@ def _run(
 
     with dask_client(workers, scheduler, info) as client:
         index = {}
-        for i, (cap, vel) in enumerate(jobs):
+        for i, (cap, vel, paths) in enumerate(jobs):
             index[
                 client.submit(
-                    _deblur_tile_on_worker, solve, cap, vel, motion_model, options, pure=False
+                    _deblur_tile_on_worker,
+                    solve,
+                    cap,
+                    vel,
+                    motion_model,
+                    options,
+                    paths,
+                    pure=False,
                 )
             ] = i
         done = 0

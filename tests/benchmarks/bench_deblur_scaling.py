@@ -6,7 +6,7 @@ runs in a fresh subprocess that reads it, so the peak resident memory it reports
 (``ru_maxrss``) is the deblur's alone (reading the capture included). Prints one row per
 size: megapixels, channels, seconds (wall clock, and CPU: user + system, steadier on a
 shared machine), peak GB and the dark-pixel RMS error (stops, as ``vet evaluate`` scores).
-The deblur runs as ``vet deblur`` runs it: ``--tile auto`` (frames over 1536 pixels on a
+The deblur runs as ``vet deblur`` runs it: ``--tile auto`` (frames over 1024 pixels on a
 side in tiles) and the capture's stream let go of once binned.
 
 Run: ``.venv/bin/python -m tests.benchmarks.bench_deblur_scaling [WxH[:mono|rgb] ...]``
