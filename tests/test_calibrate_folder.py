@@ -76,7 +76,8 @@ def test_folder_layout_written_by_the_emulated_rig(recorded):
 def test_folder_calibration_finds_the_parts_of_the_emulated_rig(calibrated):
     """The measurement -> VET mapping within 0.1 px RMS over the frame (0.019), the
     trigger offset within 0.1 ms (+0.012 ms), the switching time within 10% (-0.4%), the
-    per-pixel leakage within 10% everywhere (5.0% max, 1.0% RMS)."""
+    per-pixel leakage within 10% everywhere (5.0% max, 1.0% RMS), the relay blur within
+    10% (-4.4%, from the first Gray-code bits' edges)."""
     r, out, truth = calibrated
     assert r.exit_code == 0, r.output
     cal = c.read_calibration(out)
@@ -85,7 +86,9 @@ def test_folder_calibration_finds_the_parts_of_the_emulated_rig(calibrated):
     assert abs(err["trigger_offset_err_s"]) <= 1e-4
     assert abs(err["switch_rel_err"]) <= 0.1
     assert err["leakage_px_max_rel_err"] <= 0.1
+    assert abs(err["relay_blur_rel_err"]) <= 0.1
     assert set(cal.parts) == {
+        "relay_blur_px",
         "measure_homography",
         "measure_k1",
         "measure_k2",

@@ -77,7 +77,8 @@ def test_calibrate_from_folder(tmp_path):
         "measurement -> VET mapping",
         "trigger offset and switching time",
     ]
-    assert cal.parts == {}
+    # The Gray-code edges of this folder are sharp: no relay blur.
+    assert set(cal.parts) == {"relay_blur_px"} and cal.parts["relay_blur_px"] < 0.2
 
 
 def test_calibrate_from_folder_skips_missing_parts(tmp_path, caplog):

@@ -175,7 +175,7 @@ def _move_into(tmp: Path, target: Path) -> None:
 def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, float]:
     """Errors of the parts in ``cal`` against the emulated rig's ``truth``:
     ``mapping_rms_px`` (:func:`.parts.mapping_error_px`), ``trigger_offset_err_s``
-    (signed, s), ``switch_rel_err`` (signed, relative), and for the per-pixel leakage map
+    (signed, s), ``switch_rel_err`` and ``relay_blur_rel_err`` (signed, relative), and for the per-pixel leakage map
     against the relay-blurred per-cell truth ``leakage_px_max_rel_err`` and
     ``leakage_px_rms_rel_err`` (over the pixels where it is finite). Parts missing from
     ``cal`` are left out."""
@@ -195,6 +195,8 @@ def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, floa
         out["trigger_offset_err_s"] = p["trigger_offset_s"] - truth.trigger_offset_s
     if "switch_s" in p and truth.switch_s > 0:
         out["switch_rel_err"] = p["switch_s"] / truth.switch_s - 1
+    if "relay_blur_px" in p and truth.relay_blur_px > 0:
+        out["relay_blur_rel_err"] = p["relay_blur_px"] / truth.relay_blur_px - 1
     if cal.leakage is not None and tuple(cal.sensor_size) == tuple(truth.sensor_size):
         w, h = truth.sensor_size
         true_px = relay_blur(

@@ -283,6 +283,47 @@ def emulated_switching_series(
     return np.asarray([float(np.mean(dn)) / g / rate_e_s for dn in frames])
 
 
+# --- the relay blur ----------------------------------------------------------------------
+
+
+def fit_edge_blur(diff: np.ndarray, axis: int = 1, step: int = 4, half: int = 8) -> float | None:
+    """The relay blur's Gaussian sigma (VET px) from an (H, W) image holding one edge
+    between two flat levels of opposite sign, across ``axis`` (1: a vertical edge, each
+    row crosses it once): e.g. the first Gray-code bit's pattern minus its inverse. Every
+    ``step``-th line is fitted with ``b + a erf((x - x0) / (sqrt(2) sigma))`` over
+    ``half`` pixels either side of its sign change; the median sigma. None when no line
+    crosses the edge once with a clear step (at least 10 noise sigmas)."""
+    from scipy.optimize import least_squares
+    from scipy.special import erf
+
+    a = np.asarray(diff, np.float64)
+    if axis == 0:
+        a = a.T
+    sigmas = []
+    x = np.arange(2 * half) + 0.5
+    for line in a[::step]:
+        sign = np.sign(line)
+        cross = np.flatnonzero(sign[1:] * sign[:-1] < 0)
+        if cross.size == 0:
+            continue
+        mid = int(np.median(cross))
+        if mid < half or mid + half >= line.size or np.any(np.abs(cross - mid) > half // 2):
+            continue
+        seg = line[mid - half + 1 : mid + half + 1]
+        lo, hi = np.median(line[: mid - half]), np.median(line[mid + half + 1 :])
+        noise = float(np.std(line[: mid - half] - lo)) + 1e-12
+        if abs(hi - lo) < 10 * noise:
+            continue
+
+        def resid(p: np.ndarray, seg: np.ndarray = seg) -> np.ndarray:
+            return p[0] + p[1] * erf((x - p[2]) / (np.sqrt(2) * max(abs(p[3]), 1e-3))) - seg
+
+        p0 = [(hi + lo) / 2, (hi - lo) / 2, float(half), 1.0]
+        fit = least_squares(resid, p0, x_scale=[abs(hi - lo), abs(hi - lo), 1.0, 1.0])
+        sigmas.append(abs(fit.x[3]))
+    return float(np.median(sigmas)) if sigmas else None
+
+
 # --- the leakage map ------------------------------------------------------------------
 
 

@@ -224,7 +224,7 @@ def calibrate_from_folder(
     }
     from .recorded_parts import fit_folder_parts
 
-    fit_folder_parts(cal, params, poses, switch_means, pattern)
+    fit_folder_parts(cal, params, poses, switch_means, pattern, frames.gray_diffs)
     return cal
 
 

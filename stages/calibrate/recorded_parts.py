@@ -13,7 +13,10 @@ Called by :func:`.recorded.calibrate_from_folder` once the flat-field calibratio
   the LCoS footprint, bias and dark current subtracted, fitted with an unknown light
   level by :func:`.parts.fit_switching_scaled` (the cells' mean leakage from the
   calibration's leakage map): ``trigger_offset_s`` (the applied closure's time minus
-  ``C tau``) and ``switch_s``.
+  ``C tau``) and ``switch_s``;
+- **Gray-code frames**: the first column bit's and the first row bit's pattern minus
+  inverse each hold one edge of the LCoS image, whose width is the relay blur
+  (:func:`.parts.fit_edge_blur`): ``relay_blur_px``.
 
 The per-pixel leakage needs nothing here: it is the calibration's ``leakage`` map
 (all-closed over all-open rates, :func:`.sensor_models.leakage_map`).
@@ -28,7 +31,8 @@ import numpy as np
 
 from ..rig import RigParams
 from .calfile import Calibration
-from .parts import find_corners, fit_measure_mapping, fit_switching_scaled
+from .gray_code import gray_bit_counts
+from .parts import find_corners, fit_edge_blur, fit_measure_mapping, fit_switching_scaled
 
 log = logging.getLogger("vet.calibrate")
 
@@ -165,11 +169,13 @@ def fit_folder_parts(
     poses: dict[str, tuple[np.ndarray, np.ndarray]],
     switch_means: dict[int, dict[float, np.ndarray]],
     pattern: tuple[int, int] | None,
+    gray_diffs: list[np.ndarray] | None = None,
 ) -> None:
     """Fit the parts the folder's frames allow into ``cal`` (in place): ``cal.parts``
     (RigParams fields), ``cal.provenance["parts_fit"]`` (what each fit used and its
     residual), and a warning plus a ``provenance["skipped"]`` entry for each part
-    missing. ``switch_means``: ``{c: {W: mean frame (H, W) DN}}``."""
+    missing. ``switch_means``: ``{c: {W: mean frame (H, W) DN}}``; ``gray_diffs``: the
+    Gray-code differences of :class:`.frames.CalibrationFrames`."""
     skipped = cal.provenance.setdefault("skipped", [])
     info: dict = {}
 
@@ -206,6 +212,21 @@ def fit_folder_parts(
             info["switching"] = fitted
     else:
         skip("trigger offset and switching time (no switch_C_Ws frames)")
+
+    if gray_diffs:
+        nx, _ = gray_bit_counts(cal.lcos_cells)
+        found = [
+            s
+            for s in (fit_edge_blur(gray_diffs[0], 1), fit_edge_blur(gray_diffs[nx], 0))
+            if s is not None
+        ]
+        if found:
+            cal.parts["relay_blur_px"] = float(np.mean(found))
+            info["relay_blur"] = {"edges": len(found), "sigmas_px": found}
+        else:
+            skip("relay blur (no clean edge in the first Gray-code bits)")
+    else:
+        skip("relay blur (no Gray-code frames)")
     if info:
         cal.provenance["parts_fit"] = info
 
