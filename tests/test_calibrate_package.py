@@ -18,9 +18,11 @@ LAYERS = (
     "calfile",
     "frames",
     "acquire",
-    "recorded",
     "parts",
+    "recorded_parts",
+    "recorded",
     "emulated",
+    "emulated_folder",
     "run",
     "selftest",
 )

@@ -10,6 +10,7 @@ from stages.calibrate.parts import (
     emulated_switching_series,
     emulated_target_frames,
     find_corners,
+    fit_edge_blur,
     fit_measure_mapping,
     fit_switching,
     leakage_per_cell,
@@ -103,3 +104,15 @@ def test_vet_calibrate_finds_the_parts_of_the_emulated_realistic_rig(tmp_path):
         "switch_s",
     }
     assert all(changes[k] == v for k, v in cal.parts.items())
+
+
+@pytest.mark.parametrize("sigma", [1.0, 1.6, 2.5])
+def test_relay_blur_from_one_edge(sigma):
+    """A step between two levels, through the relay blur with noise (SNR 33): the edge
+    fit finds the blur's sigma within 10% across rows and across columns."""
+    rng = np.random.default_rng(4)
+    step = np.where(np.arange(160) < 81, -1.0, 1.0)[None, :] * np.ones((120, 1)) * 1000
+    img = relay_blur(step.astype(np.float32), sigma) + rng.normal(0, 30, step.shape)
+    assert fit_edge_blur(img, 1) == pytest.approx(sigma, rel=0.1)
+    assert fit_edge_blur(img.T, 0) == pytest.approx(sigma, rel=0.1)
+    assert fit_edge_blur(rng.normal(0, 30, step.shape), 1) is None

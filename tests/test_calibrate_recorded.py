@@ -71,7 +71,14 @@ def test_calibrate_from_folder(tmp_path):
     assert cal.summary["dark_current_median_e_s"] == pytest.approx(truth["dark"], rel=0.1)
     assert cal.summary["leakage_median"] == pytest.approx(truth["leak"], rel=0.1)
     assert cal.summary["gain_ratio_median"] == pytest.approx(truth["meas"], rel=0.05)
-    assert cal.provenance["skipped"] == []
+    # Every flat-field part measured; only the parts of a real rig (no target or
+    # switching frames in this folder) are skipped.
+    assert [s.split(" (")[0] for s in cal.provenance["skipped"]] == [
+        "measurement -> VET mapping",
+        "trigger offset and switching time",
+    ]
+    # The Gray-code edges of this folder are sharp: no relay blur.
+    assert set(cal.parts) == {"relay_blur_px"} and cal.parts["relay_blur_px"] < 0.2
 
 
 def test_calibrate_from_folder_skips_missing_parts(tmp_path, caplog):

@@ -25,13 +25,17 @@ maps as layers and the numbers in its metadata (vet info CAL); vet capture
 With --rig sim the emulated rig images a flat field; --true-homography, --leakage,
 --dark-current and --lcos set the truth that calibration must find, and the errors
 against it are logged and stored. With --frames FOLDER the frames come from files
-(PNG, TIFF, or camera raws through rawpy; names in docs/calibration.md).
+(PNG, TIFF, or camera raws through rawpy; names in docs/calibration.md), including a
+chessboard both cameras see and a switching series, from which the measurement
+camera's mapping, the trigger offset and the switching time are found. --save-frames
+DIR records the emulated rig's frames into DIR in that layout and calibrates from it.
 
 \b
 Example:
   vet calibrate --rig sim --size 320x256 --lcos 256x150 --true-homography example \\
       --leakage 0.003 --dark-current 15 -o cal.exr
   vet calibrate --frames recorded/ --lcos 1024x600 -o cal.npz
+  vet calibrate --rig sim --size 320x240 --save-frames frames/ -o cal.npz
   vet capture --rig sim --size 320x256 --calibration cal.exr -o cap1
 """,
 )
@@ -54,6 +58,13 @@ Example:
     help="[sim] True cell->pixel homography: 'a,b,c,d,e,f,g,h,i', a JSON file, or 'example' "
     "(a rotated, zoomed, keystoned one) [the nominal one].",
 )
+@click.option(
+    "--save-frames",
+    default=None,
+    metavar="DIR",
+    help="[sim] Record the emulated rig's frames into DIR in the --frames layout (an empty "
+    "or new folder; --force replaces the frames of a used one) and calibrate from it.",
+)
 @click.option("--scene", default=None, help="[sim] Scene instead of the flat field.")
 @click.option("--size", type=SIZE, default=None, help="[sim] Sensor size [1280x1024].")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="[sim] Noise seed.")
@@ -74,6 +85,7 @@ def cli(
     output: str,
     frames_dir: str | None,
     true_homography: str | None,
+    save_frames: str | None,
     scene: str | None,
     size: tuple[int, int] | None,
     seed: int,
@@ -85,7 +97,11 @@ def cli(
 
     if rig_spec is None and frames_dir is None:
         raise click.UsageError("give --rig sim|RIG.toml or --frames FOLDER")
-    check_outputs([Output("-o", output)], force)
+    if save_frames is not None and (rig_spec != "sim" or frames_dir is not None):
+        raise click.UsageError(
+            "--save-frames records the emulated rig: give --rig sim, not --frames"
+        )
+    check_outputs([Output("-o", output), Output("--save-frames", save_frames, "folder")], force)
     with Progress("calibrate") as progress:
         cal = c.run_calibration(
             rig_spec,
@@ -98,6 +114,8 @@ def cli(
             scene=scene,
             settings=c.AcquisitionSettings(frames_per_exposure=average),
             progress=progress,
+            save_frames=save_frames,
+            force=force,
         )
     c.write_calibration(output, cal)
     fit, s = cal.homography_fit, cal.summary
@@ -115,6 +133,11 @@ def cli(
             for k in ("leakage_median", "dark_current_median_e_s", "gain_ratio_median")
         ),
     )
+    if cal.parts:
+        log.info(
+            "parts: %s",
+            ", ".join(f"{k} {v:.4g}" for k, v in cal.parts.items() if isinstance(v, float)),
+        )
     errs = cal.provenance.get("errors_vs_truth")
     if errs:
         log.info("vs emulated truth: %s", ", ".join(f"{k} {v:.3g}" for k, v in errs.items()))

@@ -18,13 +18,18 @@ The modules, each importing only those above it:
 - :mod:`.calfile`: :class:`Calibration`, the calibration file, :func:`apply_calibration`.
 - :mod:`.frames`: :class:`CalibrationFrames` and :func:`calibrate_frames`.
 - :mod:`.acquire`: driving a rig through the calibration sequence.
-- :mod:`.recorded`: reading a folder of recorded frames or camera raws.
 - :mod:`.parts`: the parts of a real rig (:mod:`stages.optics`): the measurement ->
   VET mapping and distortion from a chessboard both cameras see, the switching time and
   trigger offset from closures at a known subframe, the leakage map per pixel and per
   cell (``python -m stages.calibrate.parts``; the emulated rig's mapping, trigger
   offset and switching time in ``vet calibrate --rig sim --rig-profile``).
+- :mod:`.recorded_parts`: those parts fitted from a folder's chessboard poses and
+  switching series.
+- :mod:`.recorded`: reading a folder of recorded frames or camera raws.
 - :mod:`.emulated`: the emulated rig and the errors against its truth.
+- :mod:`.emulated_folder`: the emulated rig's frames written as such a folder
+  (``vet calibrate --rig sim --save-frames DIR``), and the parts' errors against its
+  truth.
 - :mod:`.run`: :func:`run_calibration`, what ``vet calibrate`` does.
 - :mod:`.selftest`: the acceptance point, ``python -m stages.calibrate --selftest``.
 
@@ -44,6 +49,7 @@ from .calfile import (
     write_calibration,
 )
 from .emulated import calibrate_sim, compare_to_truth, open_sim_calibration_rig
+from .emulated_folder import compare_parts_to_truth, write_emulated_folder
 from .frames import CalibrationFrames, ProgressFn, calibrate_frames
 from .geometry import (
     HomographyFit,
@@ -75,6 +81,7 @@ __all__ = [
     "calibrate_sim",
     "calibration_changes",
     "calibration_overrides",
+    "compare_parts_to_truth",
     "compare_to_truth",
     "dark_model",
     "decode_gray",
@@ -92,4 +99,5 @@ __all__ = [
     "selftest",
     "signal_rate",
     "write_calibration",
+    "write_emulated_folder",
 ]

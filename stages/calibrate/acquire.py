@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +18,11 @@ from .frames import CalibrationFrames, ProgressFn, calibrate_frames, software_ve
 from .gray_code import gray_code_patterns
 
 log = logging.getLogger("vet.calibrate")
+
+#: ``sink(tag, index, frame)``: each frame an acquisition averages, as the camera gave it
+#: ((H, W) float32 DN); ``tag`` is ``(kind, exposure_s)`` for ``dark``, ``open``,
+#: ``closed`` and ``meas_flat`` frames, ``("gray", k)`` for Gray pattern ``k``.
+FrameSink = Callable[[tuple[str, float], int, np.ndarray], None]
 
 
 @dataclass
@@ -47,8 +53,9 @@ class AcquisitionSettings:
 class _RigExposer:
     """One exposure of either camera on any rig, averaged, as (H, W) float32 DN."""
 
-    def __init__(self, rig: Any):
+    def __init__(self, rig: Any, sink: FrameSink | None = None):
         self.rig = rig
+        self.sink = sink
         self.emulated_vet = hasattr(rig.vet, "expose_pattern")
         self.emulated_meas = hasattr(rig.measurement, "render")
         self.n_cells = rig.params.lcos_cells[0] * rig.params.lcos_cells[1]
@@ -97,15 +104,21 @@ class _RigExposer:
         self._stale = True  # a real camera's next frame may have started before the mask
 
     def vet(
-        self, closed: np.ndarray | None, exposure_s: float, n: int, light: bool = True
+        self,
+        closed: np.ndarray | None,
+        exposure_s: float,
+        n: int,
+        light: bool = True,
+        tag: tuple[str, float] | None = None,
     ) -> np.ndarray:
         """Mean of ``n`` VET frames, (H, W) float32 DN, through ``closed`` (None: all open).
 
         The emulated camera exposes ``exposure_s`` seconds (``light=False``: a dark frame);
         a real one keeps its own exposure, and its first frame after a new mask is dropped.
+        Each frame goes to the sink under ``tag`` when both are given.
         """
         acc = None
-        for _ in range(n):
+        for i in range(n):
             if self.emulated_vet:
                 open_cells = None if closed is None else ~np.asarray(closed, bool).ravel()
                 img = self.rig.vet.expose_pattern(open_cells, exposure_s, light=light)
@@ -115,13 +128,16 @@ class _RigExposer:
                     self._stale = False
                 img = self._grab(self.rig.vet)
             img = self._mono(img)
+            if self.sink is not None and tag is not None:
+                self.sink(tag, i, img)
             acc = img.astype(np.float64) if acc is None else acc + img
         return (acc / n).astype(np.float32)
 
-    def meas(self, n: int) -> np.ndarray:
-        """Mean of ``n`` measurement-camera frames, (H, W) float32 DN."""
+    def meas(self, n: int, tag: tuple[str, float] | None = None) -> np.ndarray:
+        """Mean of ``n`` measurement-camera frames, (H, W) float32 DN (each to the sink
+        under ``tag``)."""
         acc = None
-        for _ in range(n):
+        for i in range(n):
             if self.emulated_meas:
                 img = self.rig.measurement.render(
                     self._meas_k % max(self.rig.params.n_subframes, 1)
@@ -130,12 +146,17 @@ class _RigExposer:
             else:
                 img = self._grab(self.rig.measurement)
             img = self._mono(img)
+            if self.sink is not None and tag is not None:
+                self.sink(tag, i, img)
             acc = img.astype(np.float64) if acc is None else acc + img
         return (acc / n).astype(np.float32)
 
 
 def acquire_frames(
-    rig: Any, settings: AcquisitionSettings | None = None, progress: ProgressFn | None = None
+    rig: Any,
+    settings: AcquisitionSettings | None = None,
+    progress: ProgressFn | None = None,
+    sink: FrameSink | None = None,
 ) -> CalibrationFrames:
     """Drive a rig through the calibration sequence and collect averaged frames.
 
@@ -151,13 +172,16 @@ def acquire_frames(
         An open rig viewing a flat, bright, still field.
     settings : AcquisitionSettings, optional
     progress : callable(done, total), optional
+    sink : callable(tag, index, frame), optional
+        Receives every frame averaged (:data:`FrameSink`; probes are not), e.g. to
+        record the calibration as a folder for :func:`calibrate_from_folder`.
 
     Returns
     -------
     CalibrationFrames
     """
     s = settings or AcquisitionSettings()
-    ex = _RigExposer(rig)
+    ex = _RigExposer(rig, sink)
     params = rig.params
     patterns = gray_code_patterns(params.lcos_cells)
     n_gray = len(patterns)
@@ -175,7 +199,7 @@ def acquire_frames(
     full = params.max_dn
     if ex.emulated_vet:
         for t in s.dark_exposures_s:
-            frames.dark[float(t)] = ex.vet(None, float(t), n, light=False)
+            frames.dark[float(t)] = ex.vet(None, float(t), n, light=False, tag=("dark", float(t)))
             tick()
     else:
         log.warning(
@@ -191,7 +215,7 @@ def acquire_frames(
         t_open = min(s.max_exposure_s, s.target_fill * full / rate)
     else:
         t_open = ex.vet_fixed_exposure_s()
-    frames.open[t_open] = ex.vet(None, t_open, n)
+    frames.open[t_open] = ex.vet(None, t_open, n, tag=("open", t_open))
     tick()
 
     ex.show(np.ones(ex.n_cells, bool))
@@ -202,16 +226,18 @@ def acquire_frames(
         t_closed = float(min(s.max_exposure_s, max(t_open, s.target_fill * full / rate_c)))
     else:
         t_closed = ex.vet_fixed_exposure_s()
-    frames.closed[t_closed] = ex.vet(np.ones(ex.n_cells, bool), t_closed, n)
+    frames.closed[t_closed] = ex.vet(
+        np.ones(ex.n_cells, bool), t_closed, n, tag=("closed", t_closed)
+    )
     tick()
 
     diffs = []
     for k in range(0, n_gray, 2):
         imgs = []
-        for pat in (patterns[k], patterns[k + 1]):
+        for j, pat in enumerate((patterns[k], patterns[k + 1])):
             closed = ~pat
             ex.show(closed)
-            imgs.append(ex.vet(closed, t_open, s.gray_frames))
+            imgs.append(ex.vet(closed, t_open, s.gray_frames, tag=("gray", k + j)))
         diffs.append(imgs[0] - imgs[1])
         tick()
     frames.gray_diffs = diffs
@@ -219,7 +245,7 @@ def acquire_frames(
     tick()
 
     t_meas = params.subframe_s if ex.emulated_meas else ex.meas_fixed_exposure_s()
-    frames.meas_flat[t_meas] = ex.meas(n)
+    frames.meas_flat[t_meas] = ex.meas(n, tag=("meas_flat", t_meas))
     tick()
     sat = float(np.mean(frames.meas_flat[t_meas] >= params.saturation_dn))
     if sat > 0.01:

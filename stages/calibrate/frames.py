@@ -8,8 +8,8 @@ the rig.
 
 The measurement camera is not behind the LCoS, so the Gray code says nothing about it:
 its mapping onto the VET sensor (homography and distortion) comes from a chessboard both
-cameras see (:mod:`.parts`, not yet a step of this sequence; the gain ratio here assumes
-the two grids coincide, see docs/calibration.md).
+cameras see (:mod:`.parts`; from a folder, :mod:`.recorded_parts`). The gain ratio here
+assumes the two grids coincide (see docs/calibration.md).
 """
 
 from __future__ import annotations

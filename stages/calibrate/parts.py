@@ -40,14 +40,20 @@ from ..rig import RigParams
 # --- the measurement -> VET mapping -------------------------------------------------------
 
 
-def chessboard_target(size: tuple[int, int], square_px: int = 12, blur_px: float = 0.7):
+def chessboard_target(
+    size: tuple[int, int],
+    square_px: int = 12,
+    blur_px: float = 0.7,
+    offset_px: tuple[float, float] = (0.0, 0.0),
+):
     """A chessboard radiance (H, W, 1) float32 of ``square_px`` squares (values 0.05 and
-    1), centred, softened by a Gaussian of ``blur_px`` as optics would; and its inner
+    1), centred and then moved by ``offset_px`` (x, y; a few pixels at most: it must stay
+    in the frame), softened by a Gaussian of ``blur_px`` as optics would; and its inner
     corner pattern (columns, rows)."""
     w, h = size
     nx, ny = w // square_px - 2, h // square_px - 2
-    x0 = (w - (nx + 1) * square_px) / 2
-    y0 = (h - (ny + 1) * square_px) / 2
+    x0 = (w - (nx + 1) * square_px) / 2 + offset_px[0]
+    y0 = (h - (ny + 1) * square_px) / 2 + offset_px[1]
     yy, xx = np.mgrid[0:h, 0:w] + 0.5
     ix = np.floor((xx - x0) / square_px)
     iy = np.floor((yy - y0) / square_px)
@@ -122,19 +128,34 @@ def mapping_error_px(est: RigParams, truth: RigParams, step: int = 4) -> float:
     return float(np.sqrt(np.mean(d2[::step, ::step])))
 
 
+def emulated_target_stack(
+    rig: RigParams,
+    seed: int = 0,
+    square_px: int = 12,
+    frames: int = 4,
+    offset_px: tuple[float, float] = (0.0, 0.0),
+) -> tuple[list[np.ndarray], list[np.ndarray], tuple[int, int]]:
+    """The chessboard target (:func:`chessboard_target`) as the emulated rig's VET camera
+    (all cells open, half the full well on white) and measurement camera record it,
+    ``frames`` frames each: lists of (H, W) and (Hm, Wm) float32 DN (black level
+    subtracted, integer codes), and the corner pattern."""
+    target, pattern = chessboard_target(rig.sensor_size, square_px, offset_px=offset_px)
+    rng = np.random.default_rng(seed)
+    lam = target * np.float32(0.5 * rig.full_well_e)
+    vet = [expose(lam.copy(), rig, rng)[..., 0] for _ in range(frames)]
+    geom = MeasureGeometry(rig)
+    meas = [geom.expose(lam, 0.0, rng)[..., 0] for _ in range(frames)]
+    return vet, meas, pattern
+
+
 def emulated_target_frames(
     rig: RigParams, seed: int = 0, square_px: int = 12, frames: int = 4
 ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """The chessboard target as the emulated rig's VET camera (all cells open, half the
     full well on white) and measurement camera record it, each the mean of ``frames``
     frames: (H, W) and (Hm, Wm) DN, and the corner pattern."""
-    target, pattern = chessboard_target(rig.sensor_size, square_px)
-    rng = np.random.default_rng(seed)
-    lam = target * np.float32(0.5 * rig.full_well_e)
-    vet = np.mean([expose(lam.copy(), rig, rng) for _ in range(frames)], axis=0)
-    geom = MeasureGeometry(rig)
-    meas = np.mean([geom.expose(lam, 0.0, rng) for _ in range(frames)], axis=0)
-    return vet[..., 0], meas[..., 0], pattern
+    vet, meas, pattern = emulated_target_stack(rig, seed, square_px, frames)
+    return np.mean(vet, axis=0), np.mean(meas, axis=0), pattern
 
 
 def emulated_corner_pairs(rig: RigParams, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
@@ -186,6 +207,67 @@ def fit_switching(
     return float(best.x[0]), float(abs(best.x[1]))
 
 
+def fit_switching_scaled(
+    windows_s: np.ndarray, signal: np.ndarray, leakage: float, t_guess: float
+) -> tuple[float, float, float]:
+    """``(t_close, switch_s, rate)``: as :func:`fit_switching` for a signal proportional
+    to the exposure, ``signal = rate * E(W)`` with the rate unknown (DN/s of a flat field
+    whose level is not otherwise known; dark-subtracted). The windows before the closure
+    pin the rate, so the series must start before it. For each ``(t, s)`` the rate is
+    the linear least-squares one (variable projection)."""
+    from scipy.optimize import least_squares
+
+    w = np.asarray(windows_s, np.float64)
+    y = np.asarray(signal, np.float64)
+    scale = float(np.max(np.abs(y))) or 1.0
+    y = y / scale
+
+    def rate(p: np.ndarray) -> tuple[float, np.ndarray]:
+        e = switching_exposure(w, p[0], abs(p[1]), leakage)
+        return float(e @ y / max(e @ e, 1e-300)), e
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        r, e = rate(p)
+        return (r * e - y) * 1e3
+
+    best = None
+    for s0 in (0.5e-3, 2e-3, 5e-3):
+        fit = least_squares(resid, [t_guess, s0], x_scale=[1e-3, 1e-3])
+        if best is None or fit.cost < best.cost:
+            best = fit
+    r, _ = rate(best.x)
+    return float(best.x[0]), float(abs(best.x[1])), r * scale
+
+
+def emulated_switching_frames(
+    rig: RigParams,
+    close_at: int,
+    windows_s: np.ndarray,
+    rate_e_s: float,
+    seed: int = 0,
+    dark: bool = False,
+) -> list[np.ndarray]:
+    """VET frames of a flat field, one per window ``W`` (s): every cell commanded closed
+    at subframe ``close_at`` (applied on the emulated rig's jittered trigger clock, one
+    frame per window, its own draw), ``rate_e_s`` electrons per second, through the
+    sensor chain (with the dark current when ``dark``): (H, W) float32 DN each, black
+    level subtracted."""
+    h, w = rig.sensor_size[1], rig.sensor_size[0]
+    cm = CellMap.for_rig(rig, (h, w))
+    eps = pixel_leakage(rig, cm).astype(np.float64)
+    rng = np.random.default_rng(seed)
+    out = []
+    for k, win in enumerate(windows_s):
+        starts, _ = subframe_clock(rig, timing_rng(seed * 1000 + k))
+        t = np.full((h, w), starts[close_at])
+        trans = relay_blur(slot_transmittance(t, 0.0, float(win), eps, rig), rig.relay_blur_px)
+        lam = trans * np.float32(rate_e_s * win)
+        if dark:
+            lam = lam + np.float32(rig.dark_current_e_s * win)
+        out.append(expose(lam[..., None].astype(np.float32), rig, rng)[..., 0])
+    return out
+
+
 def emulated_switching_series(
     rig: RigParams,
     close_at: int,
@@ -193,24 +275,53 @@ def emulated_switching_series(
     rate_e_s: float,
     seed: int = 0,
 ) -> np.ndarray:
-    """Mean exposure (s) of a flat field's VET pixels for each window ``W``: every cell
-    commanded closed at subframe ``close_at`` (applied on the emulated rig's jittered
-    trigger clock, one frame per window, its own draw), ``rate_e_s`` electrons per
-    second, the frame through the sensor chain, divided back by the rate."""
-    h, w = rig.sensor_size[1], rig.sensor_size[0]
-    cm = CellMap.for_rig(rig, (h, w))
-    eps = pixel_leakage(rig, cm).astype(np.float64)
-    rng = np.random.default_rng(seed)
-    out = []
+    """Mean exposure (s) of a flat field's VET pixels for each window ``W``
+    (:func:`emulated_switching_frames` without dark current, divided back by the gain
+    and the rate)."""
+    frames = emulated_switching_frames(rig, close_at, windows_s, rate_e_s, seed)
     g = rig.gain_dn_per_e
-    for k, win in enumerate(windows_s):
-        starts, _ = subframe_clock(rig, timing_rng(seed * 1000 + k))
-        t = np.full((h, w), starts[close_at])
-        trans = relay_blur(slot_transmittance(t, 0.0, float(win), eps, rig), rig.relay_blur_px)
-        lam = (trans * np.float32(rate_e_s * win))[..., None]
-        dn = expose(lam.astype(np.float32), rig, rng)
-        out.append(float(np.mean(dn)) / g / rate_e_s)
-    return np.asarray(out)
+    return np.asarray([float(np.mean(dn)) / g / rate_e_s for dn in frames])
+
+
+# --- the relay blur ----------------------------------------------------------------------
+
+
+def fit_edge_blur(diff: np.ndarray, axis: int = 1, step: int = 4, half: int = 8) -> float | None:
+    """The relay blur's Gaussian sigma (VET px) from an (H, W) image holding one edge
+    between two flat levels of opposite sign, across ``axis`` (1: a vertical edge, each
+    row crosses it once): e.g. the first Gray-code bit's pattern minus its inverse. Every
+    ``step``-th line is fitted with ``b + a erf((x - x0) / (sqrt(2) sigma))`` over
+    ``half`` pixels either side of its sign change; the median sigma. None when no line
+    crosses the edge once with a clear step (at least 10 noise sigmas)."""
+    from scipy.optimize import least_squares
+    from scipy.special import erf
+
+    a = np.asarray(diff, np.float64)
+    if axis == 0:
+        a = a.T
+    sigmas = []
+    x = np.arange(2 * half) + 0.5
+    for line in a[::step]:
+        sign = np.sign(line)
+        cross = np.flatnonzero(sign[1:] * sign[:-1] < 0)
+        if cross.size == 0:
+            continue
+        mid = int(np.median(cross))
+        if mid < half or mid + half >= line.size or np.any(np.abs(cross - mid) > half // 2):
+            continue
+        seg = line[mid - half + 1 : mid + half + 1]
+        lo, hi = np.median(line[: mid - half]), np.median(line[mid + half + 1 :])
+        noise = float(np.std(line[: mid - half] - lo)) + 1e-12
+        if abs(hi - lo) < 10 * noise:
+            continue
+
+        def resid(p: np.ndarray, seg: np.ndarray = seg) -> np.ndarray:
+            return p[0] + p[1] * erf((x - p[2]) / (np.sqrt(2) * max(abs(p[3]), 1e-3))) - seg
+
+        p0 = [(hi + lo) / 2, (hi - lo) / 2, float(half), 1.0]
+        fit = least_squares(resid, p0, x_scale=[abs(hi - lo), abs(hi - lo), 1.0, 1.0])
+        sigmas.append(abs(fit.x[3]))
+    return float(np.median(sigmas)) if sigmas else None
 
 
 # --- the leakage map ------------------------------------------------------------------

@@ -24,6 +24,10 @@ RAW_SUFFIXES = (".dng", ".nef", ".cr2", ".cr3", ".arw", ".orf", ".rw2", ".raf", 
 _NUM = r"(?P<t>\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)"
 _TIMED = re.compile(rf"^(?P<kind>dark|open|closed|meas_flat|meas_dark)_{_NUM}s_(?P<n>\d+)$")
 _GRAY = re.compile(r"^gray_(?P<k>\d+)(?:_(?P<n>\d+))?$")
+_TARGET = re.compile(r"^target_(?P<cam>vet|meas)_(?P<p>\d+)(?:_(?P<n>\d+))?$")
+_SWITCH = re.compile(rf"^switch_(?P<c>\d+)_{_NUM}s_(?P<n>\d+)$")
+#: Name patterns (file stems) of the folder layout of :func:`calibrate_from_folder`.
+LAYOUT = (_TIMED, _GRAY, _TARGET, _SWITCH)
 
 
 def read_frame(path: str | Path) -> np.ndarray:
@@ -71,10 +75,26 @@ def calibrate_from_folder(
                               gray_code_patterns() (even KK pattern, odd KK its inverse)
         meas_flat_<t>s_<NN>   measurement camera, same flat field
         meas_dark_<t>s_<NN>   measurement camera, lens capped, same t (optional)
+        target_vet_<PP>[_<NN>]   VET camera, all cells open, a chessboard in pose PP
+        target_meas_<PP>[_<NN>]  measurement camera, the same chessboard pose PP
+        switch_<C>_<W>s_<NN>  VET camera, flat field, every cell applied closed at
+                              subframe C (as the LCoS acknowledges it), exposure window
+                              W seconds from the trigger; W stepped across the closure
 
-    e.g. ``dark_0.5s_00.tif``, ``gray_07.png``. An optional ``rig.toml`` in the folder
-    with a ``[params]`` table (as in a rig file) gives the LCoS grid and the sensor's
-    gain; ``params`` overrides it. Missing parts are skipped with a warning.
+    e.g. ``dark_0.5s_00.tif``, ``gray_07.png``, ``target_vet_00_03.png``,
+    ``switch_20_0.1511s_00.png``. An optional ``rig.toml`` in the folder with a
+    ``[params]`` table (as in a rig file) gives the LCoS grid, the sensor's gain and the
+    subframe length; ``params`` overrides it. Its optional ``[calibration]`` table's
+    ``chessboard = [columns, rows]`` gives the target's inner corners (found by a small
+    search without it).
+
+    Found from them: the flat-field calibration (:func:`.frames.calibrate_frames`:
+    homography, bias and dark current, the per-pixel leakage map from the open and
+    closed frames, the gain ratio) and the parts of a real rig into ``Calibration.parts``
+    (:mod:`.recorded_parts`): ``measure_homography``, ``measure_k1``, ``measure_k2``
+    from the chessboard poses, ``trigger_offset_s`` and ``switch_s`` from the switching
+    series. Missing parts are skipped with a warning (``provenance["skipped"]``); a pose
+    whose chessboard is not found in both cameras is left out with a warning.
 
     Raises
     ------
@@ -85,10 +105,14 @@ def calibrate_from_folder(
     root = Path(folder)
     if not root.is_dir():
         raise InputError(f"{root}: no such folder of calibration frames")
+    table = _folder_toml(root)
     if params is None:
-        params = _folder_params(root)
+        params = _folder_params(root, table)
+    pattern = _chessboard(table, root)
     timed: dict[str, dict[float, list[Path]]] = {}
     gray: dict[int, list[Path]] = {}
+    targets: dict[str, dict[str, list[Path]]] = {}
+    switch: dict[int, dict[float, list[Path]]] = {}
     for p in sorted(root.iterdir()):
         if not p.is_file() or p.suffix.lower() not in IMAGE_SUFFIXES + RAW_SUFFIXES:
             continue
@@ -100,6 +124,14 @@ def calibrate_from_folder(
         if m:
             gray.setdefault(int(m["k"]), []).append(p)
             continue
+        m = _TARGET.match(p.stem)
+        if m:
+            targets.setdefault(f"pose {m['p']}", {}).setdefault(m["cam"], []).append(p)
+            continue
+        m = _SWITCH.match(p.stem)
+        if m:
+            switch.setdefault(int(m["c"]), {}).setdefault(float(m["t"]), []).append(p)
+            continue
         log.debug("calibrate: ignoring %s (name does not follow the layout)", p.name)
     if not timed and not gray:
         raise InputError(
@@ -107,26 +139,30 @@ def calibrate_from_folder(
             "gray_00.png; see docs/calibration.md)"
         )
 
-    n_files = sum(len(v) for g in timed.values() for v in g.values()) + sum(
-        len(v) for v in gray.values()
+    n_files = (
+        sum(len(v) for g in timed.values() for v in g.values())
+        + sum(len(v) for v in gray.values())
+        + sum(len(v) for g in targets.values() for v in g.values())
+        + sum(len(v) for g in switch.values() for v in g.values())
     )
     done = 0
     shape: list[tuple[int, int]] = []
+    meas_shape: list[tuple[int, int]] = []
 
-    def mean_of(paths: list[Path]) -> np.ndarray:
+    def mean_of(paths: list[Path], shapes: list[tuple[int, int]] = shape) -> np.ndarray:
         nonlocal done
         acc = None
         for p in paths:
             img = read_frame(p)
-            if not shape:
-                shape.append(img.shape)
+            if not shapes:
+                shapes.append(img.shape)
                 from ..formats.io import check_size
 
                 check_size(img.size * 4 * 32, str(p))  # the maps we will hold at this size
-            elif img.shape != shape[0]:
+            elif img.shape != shapes[0]:
                 raise InputError(
                     f"{p}: frame is {img.shape[1]}x{img.shape[0]}, the others are "
-                    f"{shape[0][1]}x{shape[0][0]}"
+                    f"{shapes[0][1]}x{shapes[0][0]}"
                 )
             acc = img.astype(np.float64) if acc is None else acc + img
             done += 1
@@ -171,14 +207,65 @@ def calibrate_from_folder(
         "frames_averaged": frames.counts,
         "software": software_version(),
     }
-    return calibrate_frames(frames, params, prov)
+    cal = calibrate_frames(frames, params, prov)
+    poses = {}
+    for name, cams in sorted(targets.items()):
+        if "vet" not in cams or "meas" not in cams:
+            log.warning(
+                "calibrate: target %s has frames of the %s camera only; pose left out",
+                name,
+                "VET" if "vet" in cams else "measurement",
+            )
+            continue
+        poses[name] = (mean_of(cams["vet"]), mean_of(cams["meas"], meas_shape))
+        cal.provenance["frames_averaged"][f"target_{name}"] = len(cams["vet"])
+    switch_means = {
+        c: {w: mean_of(paths) for w, paths in by_w.items()} for c, by_w in switch.items()
+    }
+    from .recorded_parts import fit_folder_parts
+
+    fit_folder_parts(cal, params, poses, switch_means, pattern, frames.gray_diffs)
+    return cal
 
 
-def _folder_params(root: Path) -> RigParams:
-    """RigParams from ``root/rig.toml``'s ``[params]`` (defaults without it); InputError if bad."""
+def _folder_params(root: Path, data: dict | None = None) -> RigParams:
+    """RigParams from the folder's ``rig.toml`` ``[params]`` (defaults without it; ``data``:
+    the file already parsed); InputError if bad."""
+    if data is None:
+        data = _folder_toml(root)
+    if not data:
+        return RigParams()
+    from ..formats.schema import check_rig_params
+
+    return RigParams.from_dict(check_rig_params(data, str(root / "rig.toml")))
+
+
+def _chessboard(data: dict, root: Path) -> tuple[int, int] | None:
+    """``[calibration] chessboard = [columns, rows]`` of the folder's ``rig.toml``."""
+    table = data.get("calibration", {})
+    if not isinstance(table, dict):
+        raise InputError(f"{root / 'rig.toml'}: [calibration] must be a table")
+    board = table.get("chessboard")
+    if board is None:
+        return None
+    ok = (
+        isinstance(board, list)
+        and len(board) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) and 3 <= v <= 1000 for v in board)
+    )
+    if not ok:
+        raise InputError(
+            f"{root / 'rig.toml'}: [calibration] chessboard: {board!r}; expected [columns, rows] "
+            "of inner corners, integers from 3 to 1000"
+        )
+    return int(board[0]), int(board[1])
+
+
+def _folder_toml(root: Path) -> dict:
+    """The folder's parsed ``rig.toml`` ({} without it); InputError if it is not TOML."""
     toml = root / "rig.toml"
     if not toml.is_file():
-        return RigParams()
+        return {}
     import sys
 
     if sys.version_info >= (3, 11):
@@ -191,6 +278,4 @@ def _folder_params(root: Path) -> RigParams:
             data = tomllib.load(f)
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"{toml}: not valid TOML ({exc})") from None
-    from ..formats.schema import check_rig_params
-
-    return RigParams.from_dict(check_rig_params(data, str(toml)))
+    return data

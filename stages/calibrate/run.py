@@ -6,11 +6,13 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..errors import InputError
 from ..rig import RigParams
 from .acquire import AcquisitionSettings, calibrate_rig
 from .calfile import Calibration
-from .emulated import calibrate_sim
+from .emulated import calibrate_sim, compare_to_truth
 from .frames import ProgressFn
 from .geometry import parse_homography
 from .recorded import calibrate_from_folder
@@ -30,6 +32,8 @@ def run_calibration(
     settings: AcquisitionSettings | None = None,
     progress: ProgressFn | None = None,
     profile: str = "ideal",
+    save_frames: str | Path | None = None,
+    force: bool = False,
 ) -> Calibration:
     """What ``vet calibrate`` does: from recorded ``frames``, the emulated rig, or a rig file.
 
@@ -48,6 +52,12 @@ def run_calibration(
         profile (:func:`stages.optics.rig_profile`) whose parts are found too.
     settings : AcquisitionSettings, optional
     progress : callable(done, total), optional
+    save_frames : path, optional
+        Emulated rig only: record its calibration frames into this folder in the
+        ``--frames`` layout (:func:`.emulated_folder.write_emulated_folder`; a non-empty
+        folder only with ``force``) and calibrate from the folder, as ``--frames`` would;
+        the provenance gets the emulated truth's parts and ``errors_vs_truth``
+        (:func:`.emulated_folder.compare_parts_to_truth`).
 
     Returns
     -------
@@ -66,6 +76,15 @@ def run_calibration(
         return calibrate_from_folder(frames, params, progress=progress)
     if rig_spec is None:
         raise InputError("nothing to calibrate: give a rig or a folder of frames")
+    if save_frames is not None:
+        if rig_spec != "sim" or true_homography or scene:
+            raise InputError(
+                "saving frames needs the emulated rig (--rig sim) with its flat field and "
+                "nominal homography"
+            )
+        return _calibrate_saved(
+            save_frames, size, overrides, seed, profile, settings, force, progress
+        )
     if rig_spec == "sim":
         wh = size or RigParams().sensor_size
         cells = overrides.get("lcos_cells", RigParams().lcos_cells)
@@ -80,3 +99,36 @@ def run_calibration(
         )
     with open_rig(rig_spec) as rig:
         return calibrate_rig(rig, progress, settings)
+
+
+def _calibrate_saved(
+    folder: str | Path,
+    size: tuple[int, int] | None,
+    overrides: dict[str, Any],
+    seed: int,
+    profile: str,
+    settings: AcquisitionSettings | None,
+    force: bool,
+    progress: ProgressFn | None,
+) -> Calibration:
+    """Record the emulated rig's frames into ``folder``, calibrate from it, compare."""
+    from ..optics import PARTS
+    from .emulated_folder import compare_parts_to_truth, write_emulated_folder
+
+    truth = write_emulated_folder(folder, size, overrides, seed, profile, settings, force)
+    log.info("calibrate: emulated rig's frames written to %s", folder)
+    cal = calibrate_from_folder(folder, progress=progress)
+    d = truth.to_dict()
+    cal.provenance["emulated_truth"] = {
+        k: d[k] for k in ("leakage", "dark_current_e_s", "measure_fraction", *PARTS) if k in d
+    }
+    errors = compare_to_truth(
+        cal,
+        np.asarray(truth.homography),
+        truth.leakage,
+        truth.dark_current_e_s,
+        truth.measure_fraction,
+    )
+    errors.update(compare_parts_to_truth(cal, truth))
+    cal.provenance["errors_vs_truth"] = errors
+    return cal
