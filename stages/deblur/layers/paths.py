@@ -91,24 +91,30 @@ class TilePaths:
 
 
 def _groups(measure: np.ndarray, times: np.ndarray, rig: RigParams, n_groups: int):
+    """The stream summed over ``n_groups`` groups of consecutive subframes, as log DN
+    (G, H, W) float32 above a floor of 3 read noises of a group, each group's mid-time
+    (G,) s, and the floor. Filled group by group in place: the only frame-sized arrays
+    are the result and one group's sum."""
     k_n = measure.shape[0]
     edges = np.linspace(0, k_n, min(n_groups, k_n) + 1).round().astype(int)
-    sums, mids = [], []
-    for a, b in zip(edges[:-1], edges[1:], strict=True):
-        if b <= a:
-            continue
-        acc = np.zeros(measure.shape[1:3], np.float32)
+    spans = [(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+    per = k_n / max(len(spans), 1)
+    floor = 3.0 * rig.gain_dn_per_e * float(rig.read_noise_e) * np.sqrt(per) + 1.0
+    comp = np.empty((len(spans), *measure.shape[1:3]), np.float32)
+    mids = []
+    acc = np.empty(measure.shape[1:3], np.float32)
+    for g, (a, b) in enumerate(spans):
+        acc.fill(0)
         for k in range(a, b):
             if measure.shape[3] == 1:  # (the mean of one channel is itself)
                 acc += measure[k, ..., 0]
             else:
                 acc += np.asarray(measure[k], np.float32).mean(axis=2)
-        sums.append(acc)
+        np.maximum(acc, 0.0, out=comp[g])
+        comp[g] += np.float32(floor)
+        np.log(comp[g], out=comp[g])
         mids.append(0.5 * (float(times[a][0]) + float(times[b - 1][1])))
-    per = k_n / max(len(sums), 1)
-    floor = 3.0 * rig.gain_dn_per_e * float(rig.read_noise_e) * np.sqrt(per) + 1.0
-    comp = np.stack([np.log(np.maximum(s, 0.0) + np.float32(floor)) for s in sums])
-    return comp.astype(np.float32), np.asarray(mids), float(floor)
+    return comp, np.asarray(mids), float(floor)
 
 
 def _match(ref: np.ndarray, img: np.ndarray, x0: int, y0: int, guess: np.ndarray, r: int):
