@@ -140,6 +140,16 @@ def changing_motion(cap: Capture, main_only: bool = False):
     return path_layers(tp, float(cap.meta.get("integration_s", cap.rig.frame_s)))
 
 
+def _max_speed(velocity: np.ndarray, layers: Layers | None) -> float:
+    """The fastest image motion, px/s: of the layers along their paths when given, else
+    of the velocity field (H, W, 2)."""
+    if layers is not None:
+        return layers.max_speed()
+    if velocity.size == 0:
+        return 0.0
+    return float(np.sqrt(np.max(velocity[..., 0] ** 2 + velocity[..., 1] ** 2)))
+
+
 def _tiled(tile: int | str | None, shape: tuple[int, int]) -> bool:
     """Whether ``deblur(..., tile=tile)`` solves a frame of ``shape`` in tiles."""
     from .tiles import resolve_tile
@@ -336,6 +346,11 @@ def deblur(
             )
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
+    from .problem import fit_bins
+
+    # Time bins of a stream that the misfit reads: short enough for the motion to blur
+    # none of them by more than a fraction of a pixel.
+    n_fit = fit_bins(_max_speed(vel0, layers), tf, rig.n_subframes)
     # Pixels saturated in the VET image and in the first bin: only a lower bound is known.
     # (Those saturated in the VET image alone are measured by the bins, which the default
     # method fits; the paper's method, which fits I only, keeps their hdr-static value.)
@@ -356,17 +371,15 @@ def deblur(
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)
-        from .problem import FIT_BINS
-
         tiles_cap = cap
         if not cap.rig.ideal_geometry and recorded.measure is not None:
             # The tiles fit bins fitted through the camera's sampling on the whole frame.
-            fitted = register_measure(recorded.time_bins(FIT_BINS), fit=True)
+            fitted = register_measure(recorded.time_bins(n_fit), fit=True)
             tiles_cap = replace(fitted, ideal_T=cap.ideal_T)
         elif opts.use_measure and not opts.stream_fit and cap.keeps_stream:
             # The bins each tile would fit, made once: a tile's crop of them is what it
-            # would bin from its crop of the stream, at an eighth of the memory.
-            tiles_cap = cap.time_bins(FIT_BINS)
+            # would bin from its crop of the stream, in less memory.
+            tiles_cap = cap.time_bins(n_fit)
         if release_stream and tiles_cap.measure is not recorded.measure:
             cap.measure = None
             recorded.measure = None
@@ -385,6 +398,8 @@ def deblur(
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}
         extra = {"still_pixels": tiling.pop("still_pixels"), "tiles": tiling}
+        if tiles_cap.measure is not None and not tiles_cap.keeps_stream:
+            extra["fit_bins"] = int(tiles_cap.measure.shape[0])
         L, vel = output_to_rate(cap, radiance), vel0
     elif method == "vet":
         from .joint import JointOptions, deblur_joint
@@ -399,7 +414,9 @@ def deblur(
             affine_motion=opts.affine_motion and motion is None and motion_model == "affine",
             path_motion=opts.path_motion and motion is None and motion_model == "layer-paths",
         )
-        obs = observations(recorded, use_measure=opts.use_measure, stream=opts.stream_fit)
+        obs = observations(
+            recorded, use_measure=opts.use_measure, stream=opts.stream_fit, n_bins=n_fit
+        )
         if release_stream:  # (the motion and the bins are made: the stream is done with)
             cap.measure = None
             recorded.measure = None
@@ -418,6 +435,8 @@ def deblur(
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}
         extra = {"still_pixels": report["still_pixels"]}
+        if obs.yb is not None:
+            extra["fit_bins"] = len(obs.windows_b)
     else:
         from .paper import PaperOptions, deblur_paper
 

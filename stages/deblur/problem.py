@@ -58,21 +58,44 @@ class Observations:
     stream: StreamTerm | None = None
 
 
-#: Time bins the misfit reads of a capture that keeps its whole measuring stream: twice
-#: the motion estimate's (shorter bins blur less within themselves; ``make bench``'s
-#: bench_fit_bins compares 8, 16 and 32).
+#: Fewest time bins the misfit reads of a capture that keeps its whole measuring stream
+#: (twice the motion estimate's), and the most (:func:`fit_bins`).
 FIT_BINS = 16
+FIT_BINS_MAX = 64
+#: Largest distance (px) the fastest motion may travel within one fit bin.
+FIT_BIN_TRAVEL_PX = 0.5
 
 
-def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -> Observations:
+def fit_bins(max_speed_px_s: float, span_s: float, n_subframes: int) -> int:
+    """Time bins the misfit reads of a stream capture whose fastest motion is
+    ``max_speed_px_s`` over a frame of ``span_s`` seconds and ``n_subframes`` subframes.
+
+    A bin sums its subframes at fixed pixels, so a motion blurs it by the distance it
+    travels within the bin; the model states that blur, but what it removed from the
+    data (detail finer than the travel, attenuated below the noise) no model brings
+    back, while a burst merge aligns each subframe on its own. Bins short enough that
+    the fastest motion travels at most :data:`FIT_BIN_TRAVEL_PX` within one keep that
+    detail; the read noise they carry in all is the same whatever the binning (one per
+    subframe). At least :data:`FIT_BINS`, at most :data:`FIT_BINS_MAX` (the operators'
+    cost grows with the bins), and bins of two subframes at least (a stream binned
+    into single subframes would be the stream itself).
+    """
+    travel = max(float(max_speed_px_s), 0.0) * max(float(span_s), 0.0)
+    n = int(np.ceil(travel / FIT_BIN_TRAVEL_PX)) if np.isfinite(travel) else FIT_BINS_MAX
+    return int(min(max(n, FIT_BINS), FIT_BINS_MAX, max(int(n_subframes) // 2, 1)))
+
+
+def observations(
+    cap: Capture, use_measure: bool = True, stream: bool = False, n_bins: int = FIT_BINS
+) -> Observations:
     """Turn a capture into electrons and noise weights (see :class:`Observations`).
 
     A capture with time bins is observed through its bins. One that keeps its whole
-    measuring stream (:attr:`Capture.keeps_stream`) is observed through :data:`FIT_BINS` time bins
-    of it (sums of its subframes, each bin's variance carrying one read noise per
-    subframe), or with ``stream`` through the stream's aligned mean (``stream_src``,
-    :mod:`stages.deblur.stream`; experimental: on textured scenes and moving objects it
-    still loses to the bins).
+    measuring stream (:attr:`Capture.keeps_stream`) is observed through ``n_bins`` time
+    bins of it (sums of its subframes, each bin's variance carrying one read noise per
+    subframe; :func:`fit_bins` says how many a motion needs), or with ``stream`` through
+    the stream's aligned mean (``stream_src``, :mod:`stages.deblur.stream`; experimental:
+    on textured scenes and moving objects it still loses to the bins).
     """
     rig = cap.rig
     g = rig.gain_dn_per_e
@@ -90,7 +113,7 @@ def observations(cap: Capture, use_measure: bool = True, stream: bool = False) -
     yb = wb = None
     wins_b: list[list[Window]] = []
     if use_measure and cap.keeps_stream and not stream:
-        cap = cap.time_bins(FIT_BINS)
+        cap = cap.time_bins(n_bins)
     if not rig.ideal_geometry and cap.measure is not None:
         from ..measure_grid import register_measure
 
