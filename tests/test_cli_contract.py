@@ -237,6 +237,51 @@ def test_binary_output_to_a_real_terminal_is_refused():
     assert res.returncode == 2 and b"standard output is a terminal" in res.stderr, res.stderr
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["hdr-static", "-", "-o", "{d}/h.exr"],
+        ["deblur", "-", "-o", "{d}/h.exr"],
+        ["tonemap", "-", "-o", "{d}/t.png"],
+        ["info", "-"],
+        ["simulate", "builtin:chart", "--motion", "field:-", "-o", "{d}/s.exr"],
+    ],
+    ids=lambda a: a[0],
+)
+def test_reading_a_terminal_as_standard_input_is_refused(monkeypatch, tmp_path, argv):
+    # Nothing piped in: a usage error at once rather than a silent wait for an image.
+    import stages.formats.io
+
+    monkeypatch.setattr(stages.formats.io, "stdin_is_terminal", lambda: True)
+    res = invoke(*[a.format(d=tmp_path) for a in argv])
+    err = err_of(res)
+    assert res.exit_code == 2, err
+    assert "Error: -: standard input is a terminal; redirect a file into it" in err, err
+    assert list(tmp_path.iterdir()) == [] and res.stdout_bytes == b""
+
+
+def test_reading_a_real_terminal_as_standard_input_is_refused(tmp_path):
+    import os
+    import subprocess
+
+    from tests.conftest import ROOT, VET
+
+    master, slave = os.openpty()
+    try:
+        res = subprocess.run(
+            [*VET, "hdr-static", "-", "-o", tmp_path / "x.exr"],
+            stdin=slave,
+            capture_output=True,
+            env=dict(os.environ, PYTHONPATH=str(ROOT)),
+            timeout=60,  # without the check it waits for input until killed here
+        )
+    finally:
+        os.close(slave)
+        os.close(master)
+    assert res.returncode == 2 and b"standard input is a terminal" in res.stderr, res.stderr
+    assert not (tmp_path / "x.exr").exists()
+
+
 # --- 5. every invalid option value is a usage error naming the valid form --------------
 
 BAD_VALUES = {
