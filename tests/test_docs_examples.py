@@ -8,7 +8,8 @@ What a reader would have beside the document (the *fixture*):
 ``sample_data/scenes/interior.exr`` (the shipped linear HDR scene, here at 96x80),
 ``captures/`` (three captures, one a capture folder), ``recorded/`` (recorded
 calibration frames), ``real.exr`` (a capture standing for one from a rig) and, where the
-document shows a Make snippet, a Makefile holding it. What the test changes in a command
+document shows a Make snippet, a Makefile holding it (its ``VET_HOME`` the checkout's
+absolute path, as from a project elsewhere). What the test changes in a command
 (:data:`SUBSTITUTIONS`, each with its reason): sizes shrink (every example runs at
 96x80, objects and LCoS grids scaled with it), a real rig (``--rig rig.toml``) becomes the
 emulated one, an example cluster address becomes a scheduler started on loopback for the
@@ -116,6 +117,7 @@ def _write_fixture(folder: Path, doc: Path) -> None:
         body = re.sub(
             r"^VET\s*=.*$", f"VET = {Path(sys.executable).parent / 'vet'}", body, flags=re.M
         )
+        body = re.sub(r"^VET_HOME\s*=.*$", f"VET_HOME = {ROOT}", body, flags=re.M)
         body = body.replace("include make/vet.mk", f"include {ROOT / 'make' / 'vet.mk'}")
         (folder / "Makefile").write_text(body)
 
