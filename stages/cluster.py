@@ -5,6 +5,14 @@
 thread each, no dashboard) or on an existing cluster's ``scheduler`` (``tcp://HOST:PORT``).
 Worker processes are limited to one OpenMP/BLAS/OpenCV/OpenImageIO thread each
 (:data:`WORKER_ENV`, :func:`limit_threads`), so N workers use N cores and no more.
+
+Shutdown is quiet: Dask's worker heartbeats race the closing scheduler on a loaded
+machine and log a traceback ("Failed to communicate with scheduler during heartbeat",
+CommClosedError) although every result is in. The client is closed before the cluster
+(workers, then scheduler), each within :data:`CLOSE_TIMEOUT_S`, with Dask's loggers
+raised to CRITICAL in this process while they close, and an embedded cluster's workers
+pass nothing below CRITICAL once they are closing (:func:`quiet_shutdown_plugin`). Errors
+logged while the cluster works still show.
 """
 
 from __future__ import annotations
@@ -28,6 +36,10 @@ WORKER_ENV = {
 }
 #: Seconds to wait for an existing cluster's scheduler, then for its first worker.
 CONNECT_TIMEOUT_S = 30.0
+#: Seconds the client, then the embedded cluster, may take to close.
+CLOSE_TIMEOUT_S = 30.0
+#: Loggers whose records Dask's shutdown races produce.
+SHUTDOWN_LOGGERS = ("distributed", "tornado", "asyncio")
 
 _threads_limited = False
 
@@ -69,6 +81,84 @@ def quiet_dask_logs() -> None:
             logger.setLevel(logging.WARNING)
 
 
+def _shutdown_logger_names() -> list[str]:
+    names = list(SHUTDOWN_LOGGERS)
+    names += [n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]
+    return names
+
+
+@contextlib.contextmanager
+def quiet_shutdown() -> Iterator[None]:
+    """In this process, Dask's (and tornado's, asyncio's) loggers at CRITICAL while the
+    block runs, their levels restored after it: for closing a client or a cluster."""
+    saved = {}
+    for name in _shutdown_logger_names():
+        logger = logging.getLogger(name)
+        saved[name] = logger.level
+        logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)
+
+
+class _ClosingFilter(logging.Filter):
+    """Pass a record unless ``worker`` is closing (then CRITICAL only)."""
+
+    def __init__(self, worker: Any):
+        super().__init__()
+        self.worker = worker
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        from distributed.core import Status
+
+        closing = self.worker.status in (Status.closing_gracefully, Status.closing, Status.closed)
+        return record.levelno >= logging.CRITICAL or not closing
+
+
+def quiet_when_closing(worker: Any) -> None:
+    """Make the log handlers of ``worker``'s process pass CRITICAL records only once the
+    worker is closing, so a heartbeat that meets the closed scheduler prints no
+    traceback; until then every record passes."""
+    handlers = set()
+    for name in ("", *SHUTDOWN_LOGGERS):
+        handlers.update(logging.getLogger(name).handlers)
+    closing = _ClosingFilter(worker)
+    for handler in handlers:
+        handler.addFilter(closing)
+
+
+def quiet_shutdown_plugin() -> Any:
+    """A :class:`distributed.WorkerPlugin` that runs :func:`quiet_when_closing` on each
+    worker as it starts (those a nanny restarts too). Made on demand: importing
+    distributed costs a second, and most commands never start a cluster."""
+    from distributed import WorkerPlugin
+
+    class QuietWorkerShutdown(WorkerPlugin):
+        name = "vet-quiet-shutdown"
+
+        def setup(self, worker: Any) -> None:
+            quiet_when_closing(worker)
+
+    return QuietWorkerShutdown()
+
+
+def _close(client: Any, cluster: Any) -> None:
+    """Close the client, then the embedded cluster (its workers, then its scheduler),
+    each within :data:`CLOSE_TIMEOUT_S`, with Dask's loggers quiet (:func:`quiet_shutdown`).
+    A close that times out or fails is logged at debug level: the results are in."""
+    log = logging.getLogger(__name__)
+    with quiet_shutdown():
+        for what, obj in (("client", client), ("cluster", cluster)):
+            if obj is None:
+                continue
+            try:
+                obj.close(timeout=CLOSE_TIMEOUT_S)
+            except Exception as exc:  # noqa: BLE001 - a late close is not the run's failure
+                log.debug("dask: closing the %s: %s: %s", what, type(exc).__name__, exc)
+
+
 @contextlib.contextmanager
 def dask_client(
     workers: int,
@@ -89,6 +179,7 @@ def dask_client(
     quiet_dask_logs()
     t0 = time.monotonic()
     cluster = None
+    client = None
     try:
         if scheduler:
             try:
@@ -117,13 +208,10 @@ def dask_client(
                 silence_logs=logging.ERROR,  # worker heartbeat warnings under load: noise
             )
             client = distributed.Client(cluster, set_as_default=False)
+            client.register_plugin(quiet_shutdown_plugin(), name="vet-quiet-shutdown")
             info["executor"] = f"dask LocalCluster, {workers} worker processes on 127.0.0.1"
         info["workers"] = len(client.scheduler_info().get("workers", {}))
         info["startup_s"] = round(time.monotonic() - t0, 3)
-        try:
-            yield client
-        finally:
-            client.close()
+        yield client
     finally:
-        if cluster is not None:
-            cluster.close()
+        _close(client, cluster)

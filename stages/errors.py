@@ -1,7 +1,8 @@
 """One exception hierarchy for everything the command line reports as a runtime failure.
 
 A :class:`VetError` becomes a one-line ``vet <command>: error: ...`` message and exit
-status 1; anything else is a bug and shows its traceback.
+status 1, except a :class:`UsageError`, which the command line reports as click does a
+bad argument (exit status 2); anything else is a bug and shows its traceback.
 """
 
 from __future__ import annotations
@@ -13,6 +14,17 @@ class VetError(Exception):
 
 class InputError(VetError):
     """Unreadable, malformed or inconsistent input (files, arguments, specs)."""
+
+
+class UsageError(InputError):
+    """An argument that cannot be used as given, found only once the command knows more
+    than its options (the scene's size, whether standard input is a terminal): the
+    command line's usage error, exit status 2. ``option`` names the option at fault
+    (``"--motion"``), if one is."""
+
+    def __init__(self, message: str, option: str | None = None):
+        super().__init__(message)
+        self.option = option
 
 
 class FormatError(InputError):

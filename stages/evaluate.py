@@ -106,7 +106,7 @@ def run_evaluation(
     from .deblur import deblur
     from .hdr_static import hdr_static
     from .metrics import measurable_floor, stops_error
-    from .motion import parse_motion
+    from .motion import check_in_frame, parse_motion
     from .scenes import load_scene
     from .simulate import simulate
 
@@ -124,6 +124,7 @@ def run_evaluation(
     scene = load_scene(scene_spec, size)
     h, w = scene.radiance.shape[:2]
     motion = parse_motion(motion_spec)
+    check_in_frame(motion, (h, w))
     changes = dict(rig_changes or {})
     from .optics import rig_profile as make_rig
 

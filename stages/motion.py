@@ -41,12 +41,15 @@ truth (``truth_trajectory`` and the ``truth_layers`` layer of a capture file):
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, UsageError
+
+log = logging.getLogger(__name__)
 
 
 def _warp(img: np.ndarray, m: np.ndarray, border: int) -> np.ndarray:
@@ -376,6 +379,47 @@ class Oscillate(TrajectoryMotion):
         mask = self.labels(scene.shape[:2]).astype(np.float32)
         alpha = _warp(mask, m, cv2.BORDER_CONSTANT)[..., None]
         return scene + alpha * (obj - scene)
+
+
+def check_in_frame(motion: Motion, shape: tuple[int, int]) -> None:
+    """Check an ``object:`` or ``oscillate:`` rectangle against the frame it moves in.
+
+    Parameters
+    ----------
+    motion : Motion
+        Any motion; only :class:`ObjectMotion` and :class:`Oscillate` have a rectangle.
+    shape : tuple of int
+        ``(H, W)`` of the scene at the size used, pixels.
+
+    A rectangle partly outside the frame is usable (its part inside moves) but likely
+    given for another size: a warning on the log. One wholly outside moves nothing.
+
+    Raises
+    ------
+    UsageError
+        The rectangle lies wholly outside the frame.
+    """
+    if not isinstance(motion, (ObjectMotion, Oscillate)):
+        return
+    h, w = shape
+    x0, y0, x1, y1 = motion.x, motion.y, motion.x + motion.w, motion.y + motion.h
+    rect = f"X,Y,W,H = {motion.x},{motion.y},{motion.w},{motion.h}"
+    if x0 >= w or y0 >= h or x1 <= 0 or y1 <= 0:
+        raise UsageError(
+            f"invalid motion {motion.spec!r}: its rectangle ({rect}) lies wholly outside the "
+            f"{w}x{h} frame, so nothing would move; give one that overlaps the frame "
+            f"(x 0..{w - 1}, y 0..{h - 1}: pixels of the scene at the size used)",
+            option="--motion",
+        )
+    if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
+        log.warning(
+            "motion %s: its rectangle (%s) lies partly outside the %dx%d frame; "
+            "only the part inside moves (rectangles are in pixels at the size used)",
+            motion.spec,
+            rect,
+            w,
+            h,
+        )
 
 
 def trajectory_times(frame_s: float, subframe_s: float, n_subframes: int) -> np.ndarray:

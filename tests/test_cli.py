@@ -230,6 +230,38 @@ def test_simulate_then_hdr_static_files_and_info(tmp_path):
     assert info["size"] == {"width": 64, "height": 48}
 
 
+def test_info_summarises_the_measuring_images_unless_full(tmp_path):
+    # A capture keeps all 131 measuring subframes: by default one entry for them all (and
+    # the per-image metadata lists summarised), --full each, in time order (M2 < M10).
+    from stages.formats import read_capture
+
+    cap = tmp_path / "c.exr"
+    assert invoke("simulate", "builtin:chart", "--size", "32x24", "-o", cap).exit_code == 0
+    res = invoke("info", cap)
+    assert res.exit_code == 0, stderr_of(res)
+    info = json.loads(res.stdout)
+    assert len(res.stdout) < 6000, len(res.stdout)  # was 40 KB
+    assert list(info["layers"]) == ["I", "M00..M130", "T", "truth", "truth_motion"]
+    measure = read_capture(cap).measure
+    m = info["layers"]["M00..M130"]
+    assert m["count"] == 131 and m["times_s"] == pytest.approx([0.0, 131 * 0.00758])
+    assert (m["min"], m["max"]) == (float(measure.min()), float(measure.max()))
+    assert m["mean"] == pytest.approx(float(measure.mean(dtype=np.float64)))
+    meta = info["metadata"]
+    assert meta["measure_times"] == {"count": 131, "span_s": m["times_s"]}
+    assert meta["measure_subframes"] == {"count": 131, "total": 131, "min": 1, "max": 1}
+    assert list(meta["channel_order"]) == ["I", "M00..M130", "T", "truth", "truth_motion"]
+    assert "vet info --full" in info["summarised"]
+
+    full = invoke("info", cap, "--full")
+    assert full.exit_code == 0, stderr_of(full)
+    info = json.loads(full.stdout)
+    names = [f"M{i:02d}" for i in range(131)]
+    assert list(info["layers"]) == ["I", *names, "T", "truth", "truth_motion"]
+    assert list(info["metadata"]["channel_order"]) == ["I", *names, "T", "truth", "truth_motion"]
+    assert len(info["metadata"]["measure_times"]) == 131 and "summarised" not in info
+
+
 def test_deblur_fuse_still_is_recorded_in_the_file(tmp_path):
     # A still capture: by default (and with --keep-still) deblur returns hdr-static's
     # still pixels; --fuse-still gives them the value of all their data.

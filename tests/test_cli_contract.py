@@ -237,6 +237,51 @@ def test_binary_output_to_a_real_terminal_is_refused():
     assert res.returncode == 2 and b"standard output is a terminal" in res.stderr, res.stderr
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["hdr-static", "-", "-o", "{d}/h.exr"],
+        ["deblur", "-", "-o", "{d}/h.exr"],
+        ["tonemap", "-", "-o", "{d}/t.png"],
+        ["info", "-"],
+        ["simulate", "builtin:chart", "--motion", "field:-", "-o", "{d}/s.exr"],
+    ],
+    ids=lambda a: a[0],
+)
+def test_reading_a_terminal_as_standard_input_is_refused(monkeypatch, tmp_path, argv):
+    # Nothing piped in: a usage error at once rather than a silent wait for an image.
+    import stages.formats.io
+
+    monkeypatch.setattr(stages.formats.io, "stdin_is_terminal", lambda: True)
+    res = invoke(*[a.format(d=tmp_path) for a in argv])
+    err = err_of(res)
+    assert res.exit_code == 2, err
+    assert "Error: -: standard input is a terminal; redirect a file into it" in err, err
+    assert list(tmp_path.iterdir()) == [] and res.stdout_bytes == b""
+
+
+def test_reading_a_real_terminal_as_standard_input_is_refused(tmp_path):
+    import os
+    import subprocess
+
+    from tests.conftest import ROOT, VET
+
+    master, slave = os.openpty()
+    try:
+        res = subprocess.run(
+            [*VET, "hdr-static", "-", "-o", tmp_path / "x.exr"],
+            stdin=slave,
+            capture_output=True,
+            env=dict(os.environ, PYTHONPATH=str(ROOT)),
+            timeout=60,  # without the check it waits for input until killed here
+        )
+    finally:
+        os.close(slave)
+        os.close(master)
+    assert res.returncode == 2 and b"standard input is a terminal" in res.stderr, res.stderr
+    assert not (tmp_path / "x.exr").exists()
+
+
 # --- 5. every invalid option value is a usage error naming the valid form --------------
 
 BAD_VALUES = {
@@ -281,6 +326,58 @@ def test_invalid_option_values_are_usage_errors(tmp_path, case):
     assert res.exit_code == 2, err
     assert expect in err and "Traceback" not in err and "internal error" not in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+#: A rectangle wholly outside the frame at the size used: nothing would move.
+SMALL = ["builtin:chart", "--size", "64x48"]
+OUTSIDE = {
+    "simulate": ["simulate", *SMALL, "-o", "{d}/o.exr"],
+    "evaluate": ["evaluate", *SMALL, "--methods", "long", "-o", "{d}/r"],
+    "capture": ["capture", "--rig", "sim", "--size", "64x48", "-o", "{d}/c"],
+}
+
+
+@pytest.mark.parametrize("command", list(OUTSIDE))
+@pytest.mark.parametrize(
+    "motion",
+    ["object:80,64,160,128:40,10", "oscillate:-60,10,50,20:4,0", "object:10,48,8,8:1,0"],
+    ids=["object", "oscillate", "edge"],
+)
+def test_a_motion_rectangle_wholly_outside_the_scene_is_a_usage_error(
+    tmp_path, monkeypatch, command, motion
+):
+    # The README's object at 640x512 given for a 64x48 scene: known only once the
+    # scene's size is, still a usage error naming the rectangle and the frame, no work.
+    import stages.simulate
+
+    def started(*args, **kwargs):
+        raise AssertionError("the simulation started")
+
+    monkeypatch.setattr(stages.simulate, "simulate", started)
+    argv = [a.format(d=tmp_path) for a in OUTSIDE[command]]
+    res = invoke(*argv, "--motion", motion)
+    err = err_of(res)
+    assert res.exit_code == 2, err
+    assert "Invalid value for '--motion'" in err and "lies wholly outside the 64x48 frame" in err
+    rect = motion.split(":")[1]
+    assert f"X,Y,W,H = {rect}" in err and "Traceback" not in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["simulate", "evaluate"])
+def test_a_motion_rectangle_partly_outside_the_scene_is_warned_about(tmp_path, command):
+    argv = [a.format(d=tmp_path) for a in OUTSIDE[command]]
+    res = invoke(*argv, "--motion", "object:40,30,40,30:10,0")
+    err = err_of(res)
+    assert res.exit_code == 0, err
+    warned = [line for line in err.splitlines() if "outside" in line]
+    assert warned == [
+        "vet: motion object:40,30,40,30:10,0: its rectangle (X,Y,W,H = 40,30,40,30) lies "
+        "partly outside the 64x48 frame; only the part inside moves (rectangles are in "
+        "pixels at the size used)"
+    ], err
+    inside = invoke(*argv, "--motion", "object:24,18,40,30:10,0", "--force")
+    assert inside.exit_code == 0 and "outside" not in err_of(inside), err_of(inside)
 
 
 @pytest.mark.parametrize(

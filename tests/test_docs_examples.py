@@ -4,14 +4,17 @@ Each fenced ``sh``/``bash``/``console`` block is one test; the blocks of a docum
 in order in one folder, as a reader following it would, with ``vet`` and ``make`` on the
 PATH. Untyped blocks are synopses, diagrams or byte dumps, not examples.
 
-What a reader would have beside the document (the *fixture*): ``scene.exr`` (a linear HDR
-scene), ``captures/`` (three captures, one a capture folder), ``recorded/`` (recorded
+What a reader would have beside the document (the *fixture*):
+``sample_data/scenes/interior.exr`` (the shipped linear HDR scene, here at 96x80),
+``captures/`` (three captures, one a capture folder), ``recorded/`` (recorded
 calibration frames), ``real.exr`` (a capture standing for one from a rig) and, where the
-document shows a Make snippet, a Makefile holding it. What the test changes in a command
+document shows a Make snippet, a Makefile holding it (its ``VET_HOME`` the checkout's
+absolute path, as from a project elsewhere). What the test changes in a command
 (:data:`SUBSTITUTIONS`, each with its reason): sizes shrink (every example runs at
 96x80, objects and LCoS grids scaled with it), a real rig (``--rig rig.toml``) becomes the
 emulated one, an example cluster address becomes a scheduler started on loopback for the
-test, and ``make test`` (this suite itself) is not run from within it.
+test, the virtual environment activated is the one running the tests, and ``make test``
+(this suite itself) is not run from within it.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ SIZE = "96x80"
 #: (pattern, replacement, why). Applied in order to each example.
 SUBSTITUTIONS = [
     (r"--size \d+x\d+", f"--size {SIZE}", "every example runs at 96x80"),
-    (r"object:80,64,160,128:40,10", "object:24,20,40,32:40,10", "the object scaled to 96x80"),
+    (r"object:40,32,80,64:20,5", "object:12,10,24,20:20,5", "the object scaled to 96x80"),
     (r"--lcos 256x150", "--lcos 64x40", "an LCoS grid scaled to 96x80"),
     (r"--lcos 1024x600", "--lcos 40x24", "the recorded/ fixture's LCoS grid"),
     (r"--rig rig\.toml", f"--rig sim --size {SIZE}", "no real rig here: the emulated one"),
@@ -48,6 +51,11 @@ SUBSTITUTIONS = [
         "the emulated rig at 96x80 (with a calibration it takes the calibrated size)",
     ),
     (r"^make test\b.*$", "true  # make test: this suite itself", "no recursion"),
+    (
+        r"^\. \.venv/bin/activate\b",
+        f". {Path(sys.executable).parent / 'activate'}",
+        "the virtual environment running the tests, not one in the fixture's folder",
+    ),
     (r"path/to/vet/make/vet\.mk", str(ROOT / "make" / "vet.mk"), "where vet.mk is here"),
 ]
 
@@ -87,8 +95,10 @@ def _write_fixture(folder: Path, doc: Path) -> None:
     scene = builtin_interior(w, h)
     oiio = _oiio()
     spec = oiio.ImageSpec(w, h, 3, "float")
-    out = oiio.ImageOutput.create(str(folder / "scene.exr"))
-    out.open(str(folder / "scene.exr"), spec)
+    scene_path = folder / "sample_data" / "scenes" / "interior.exr"
+    scene_path.parent.mkdir(parents=True)
+    out = oiio.ImageOutput.create(str(scene_path))
+    out.open(str(scene_path), spec)
     out.write_image(np.ascontiguousarray(scene.radiance, np.float32))
     out.close()
     rig = RigParams(sensor_size=(w, h))
@@ -107,6 +117,7 @@ def _write_fixture(folder: Path, doc: Path) -> None:
         body = re.sub(
             r"^VET\s*=.*$", f"VET = {Path(sys.executable).parent / 'vet'}", body, flags=re.M
         )
+        body = re.sub(r"^VET_HOME\s*=.*$", f"VET_HOME = {ROOT}", body, flags=re.M)
         body = body.replace("include make/vet.mk", f"include {ROOT / 'make' / 'vet.mk'}")
         (folder / "Makefile").write_text(body)
 

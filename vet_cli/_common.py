@@ -1,7 +1,8 @@
 """Shared command plumbing: verbosity, logging to stderr, error mapping, progress.
 
 Exit status: 0 success; 1 runtime failure (one line ``vet <command>: error: ...`` on
-stderr, traceback only with ``-v``); 2 usage error (click's convention).
+stderr, traceback only with ``-v``); 2 usage error (click's convention, also for a
+:class:`stages.errors.UsageError` that a stage raises).
 """
 
 from __future__ import annotations
@@ -85,7 +86,7 @@ def command(name: str) -> Callable:
     def deco(f: Callable) -> Callable:
         @functools.wraps(f)
         def wrapper(*args: Any, **kwargs: Any) -> Any:
-            from stages.errors import VetError
+            from stages.errors import UsageError, VetError
 
             setup_logging()
             try:
@@ -94,6 +95,13 @@ def command(name: str) -> Callable:
                 raise
             except click.ClickException:
                 raise
+            except UsageError as exc:  # known late (a scene's size): still exit 2
+                ctx = click.get_current_context(silent=True)
+                if exc.option:
+                    raise click.BadParameter(
+                        user_message(str(exc)), ctx=ctx, param_hint=f"'{exc.option}'"
+                    ) from None
+                raise click.UsageError(user_message(str(exc)), ctx=ctx) from None
             except VetError as exc:
                 _fail(name, str(exc))
             except KeyboardInterrupt:

@@ -81,7 +81,7 @@ def cli(
     **kwargs,
 ) -> None:
     from stages.formats import write_capture
-    from stages.motion import parse_motion
+    from stages.motion import check_in_frame, parse_motion
     from stages.optics import rig_profile
     from stages.scenes import load_scene
     from stages.simulate import simulate
@@ -93,6 +93,7 @@ def cli(
     mot = parse_motion(motion)
     sc = load_scene(scene, size)
     h, w = sc.radiance.shape[:2]
+    check_in_frame(mot, (h, w))
     rig = rig_profile(profile, (w, h), **overrides)
     if rig.measure_shape != (h, w) and measure_bins != 0:
         from stages.errors import InputError

@@ -172,7 +172,7 @@ class Rig:
 
 def open_sim_rig(opts: SimOptions) -> Rig:
     """Start the emulated rig: emulator process, driver on its pty, emulated cameras."""
-    from ..motion import parse_motion
+    from ..motion import check_in_frame, parse_motion
     from ..physics import radiance_scale
     from ..scenes import load_scene, luminance
     from .lcos_emulator import LCoSEmulator
@@ -180,6 +180,7 @@ def open_sim_rig(opts: SimOptions) -> Rig:
     motion = parse_motion(opts.motion)
     scene = load_scene(opts.scene, opts.size)
     h, w = scene.radiance.shape[:2]
+    check_in_frame(motion, (h, w))
     from ..optics import rig_profile
 
     params = rig_profile(opts.profile, (w, h), **opts.overrides)

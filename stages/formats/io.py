@@ -17,7 +17,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from ..errors import FormatError, InputError, OutputError, VetError
+from ..errors import FormatError, InputError, OutputError, UsageError, VetError
 from . import limits
 from .limits import check_size  # noqa: F401 - re-exported for readers of raw frames
 from .names import display_format, format_for_output  # noqa: F401 - format_for_output re-exported
@@ -51,7 +51,9 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
     """Yield a real, seekable file path for ``path``; ``-`` spools stdin to a temp file.
 
     Libraries such as OpenImageIO cannot read ``/dev/stdin``; spooling also lets us sniff
-    the format and check the size before parsing.
+    the format and check the size before parsing. Standard input that is a terminal is
+    refused (:class:`~stages.errors.UsageError`): nobody types an image, and reading it
+    would wait silently for one.
     """
     if str(path) != "-":
         p = Path(path)
@@ -61,6 +63,11 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
             limits.check_file_size(p.stat().st_size, str(p))
         yield p
         return
+    if stdin_is_terminal():
+        raise UsageError(
+            "-: standard input is a terminal; redirect a file into it (< cap.exr), pipe "
+            "another command into it, or give a file name"
+        )
     fd, tmp = tempfile.mkstemp(prefix="vet-stdin-")
     try:
         with os.fdopen(fd, "wb") as out:
@@ -86,6 +93,14 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+
+
+def stdin_is_terminal() -> bool:
+    """Whether standard input is a terminal (False if it is closed or absent)."""
+    try:
+        return bool(sys.stdin is not None and sys.stdin.isatty())
+    except (AttributeError, ValueError):
+        return False
 
 
 def _output_folder(target: Path) -> Path:
