@@ -413,6 +413,7 @@ def deblur(
             opts,
             affine_motion=opts.affine_motion and motion is None and motion_model == "affine",
             path_motion=opts.path_motion and motion is None and motion_model == "layer-paths",
+            layer_motion=opts.layer_motion and motion is None and motion_model == "layers",
         )
         obs = observations(
             recorded, use_measure=opts.use_measure, stream=opts.stream_fit, n_bins=n_fit

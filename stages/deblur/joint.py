@@ -23,7 +23,9 @@ smaller, so that low-contrast texture the data resolve is not smoothed away.
 
 Motion. The motion comes from :mod:`stages.deblur.layers` (a still background and
 rigidly translating layers, with occlusion, estimated from all the measuring bins over
-long baselines) and is kept fixed by default; the dense Gauss-Newton steps on ``u``
+long baselines); a global translation's velocity is refined on the misfit between
+image steps (:func:`stages.deblur.layer_steps.layer_step`), objects over a still
+background keep theirs; the dense Gauss-Newton steps on ``u``
 (:func:`stages.deblur.motion_steps.motion_step`) are taken only with ``update_motion=True`` (``make bench``,
 bench_layers, prints the velocities found and the share of the frame given the wrong
 layer). Coarse to fine:
@@ -333,6 +335,7 @@ def _coarse_start(
         update_motion=False,
         affine_motion=False,
         path_motion=False,
+        layer_motion=False,
         fuse_still=False,
     )
     L_c, _ = deblur_joint(
@@ -453,6 +456,7 @@ def deblur_joint(
     iters_done = 0
     built_for = built_layers = None
     affine_state: dict = {}
+    layer_state: dict = {}
     for it in range(total):
         t0 = time.perf_counter()
         if built_for is None or not np.array_equal(built_for, vel) or layers is not built_layers:
@@ -542,6 +546,10 @@ def deblur_joint(
                 vel = affine_step(
                     obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts, affine_state
                 )
+            elif opts.layer_motion and layers is None:
+                from .layer_steps import layer_step
+
+                vel = layer_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts, layer_state)
             elif opts.update_motion:
                 from .motion_steps import motion_step
 

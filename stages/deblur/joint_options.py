@@ -34,6 +34,10 @@ class JointOptions:
     #: Gauss-Newton step on its knots between image steps
     #: (:func:`stages.deblur.path_steps.path_step`); off as ``affine_motion`` is.
     path_motion: bool = True
+    #: Refine the velocities of translating layers (model ``layers``) by Gauss-Newton
+    #: steps between image steps (:func:`stages.deblur.layer_steps.layer_step`); off as
+    #: ``affine_motion`` is.
+    layer_motion: bool = True
     use_measure: bool = True
     #: Fit a stream capture through its aligned mean, not time bins (experimental).
     stream_fit: bool = False
