@@ -93,13 +93,10 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
         raise InputError(
             f"unknown motion initialisation {motion_init!r}; choose from {', '.join(MOTION_INITS)}"
         )
-    from ..flow import motion_bins
-
-    cap = motion_bins(cap)  # the motion estimators work on time bins of a stream
     if motion_init == "layers":
         from .layers import estimate_layers
 
-        est = estimate_layers(cap)
+        est = estimate_layers(cap)  # (time bins of a stream, as it reads them)
         if est.check is None or est.check.fits:
             return est.velocity, "layers"
         from .affine import AFFINE_MISS_SHARE
@@ -117,8 +114,9 @@ def start_motion(cap: Capture, motion_init: str) -> tuple[np.ndarray, str]:
             100 * est.check.missed_share,
         )
         motion_init = "dis"
-    from ..flow import estimate_velocity, moving_mask
+    from ..flow import estimate_velocity, motion_bins, moving_mask
 
+    cap = motion_bins(cap)  # the flow works on time bins of a stream
     if moving_mask(cap).mean() < 0.01:  # the bins agree with a still scene: no motion to find
         return np.zeros((*cap.shape, 2), np.float32), "dense"
     vel, _conf = estimate_velocity(cap, motion_init)

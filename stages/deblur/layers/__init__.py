@@ -21,7 +21,9 @@ two numbers, so it is far more accurate where the model holds. The estimate
 2. **Modes** (:mod:`.velocities`). The confident velocities vote in a 2-D histogram
    (0.5 px/s cells); its peaks are the candidate layer velocities (a peak must hold
    :data:`MIN_MODE_SHARE` of the confident pixels); zero velocity is always a candidate.
-3. **Refinement** (:mod:`.velocities`). Each candidate's velocity is refined to
+3. **Refinement** (:mod:`.velocities`; this step and the next two read
+   :data:`~.estimate.TRACK_BINS` time bins of a stream, steps 1 and 6 the motion bins).
+   Each candidate's velocity is refined to
    sub-pixel-per-second precision by maximising the agreement of the motion-compensated
    bins (every bin sampled at ``y + v c_b`` should show the same scene point ``y``,
    :mod:`.alignment`) over the pixels that voted for it, weighted by their

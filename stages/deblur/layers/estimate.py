@@ -20,6 +20,12 @@ log = logging.getLogger(__name__)
 MIN_SPEED_PX_S = 1.0
 #: Estimation runs on images no larger than this (longer side, pixels).
 MAX_WORK_PX = 400
+#: Time bins of a capture that keeps its stream that the track evidence reads (the
+#: labels, their boundaries and the velocities' refinement); the flow and the model
+#: check read :data:`~stages.formats.capture.MOTION_BINS`. Shorter bins place the
+#: moment an object covers a still point more sharply, while the flow between two bins
+#: needs their light.
+TRACK_BINS = 16
 
 
 @dataclass
@@ -40,13 +46,22 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
 
     from ...flow import motion_bins
 
-    cap = motion_bins(cap)
+    binned = motion_bins(cap)
     h, w = cap.shape
-    lum, noise, valid_full = rate_frames(cap)
+    lum, noise, valid_full = rate_frames(binned)
     lv, slv, valid, (sx, sy) = work_frames(lum, noise, valid_full, MAX_WORK_PX)
     hw, ww = lv.shape[1:]
-    centres = cap.measure_times.mean(axis=1).astype(np.float64)
+    centres = binned.measure_times.mean(axis=1).astype(np.float64)
     votes, wts, vel_d, conf = dense_long_baseline(lv, slv, centres)
+    # The track evidence: on TRACK_BINS bins of a stream, else on the same bins.
+    if cap.keeps_stream and cap.measure.shape[0] > TRACK_BINS > binned.measure.shape[0]:
+        fine = cap.time_bins(TRACK_BINS)
+        lum_t, noise_t, valid_t = rate_frames(fine)
+        lvt, slvt, _valid, _scale = work_frames(lum_t, noise_t, valid_t, MAX_WORK_PX)
+        centres_t = fine.measure_times.mean(axis=1).astype(np.float64)
+        del fine, valid_t, _valid
+    else:
+        lum_t, noise_t, lvt, slvt, centres_t = lum, noise, lv, slv, centres
     ok = valid.all(axis=0)
     conf_raw = np.median(wts, axis=0) * ok
     conf = conf * ok
@@ -61,14 +76,14 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
             3.0, 0.15 * float(np.hypot(*m))
         )
         wgt = (conf * (near & sel)).astype(np.float64)
-        v = refine_velocity(lv, slv, m, centres, wgt)
+        v = refine_velocity(lvt, slvt, m, centres_t, wgt)
         if np.hypot(*v) >= MIN_SPEED_PX_S and all(
             np.hypot(*(v - c)) > SAME_LAYER_PX_S for c in cands[1:]
         ):
             cands.append(v)
     label = np.zeros((hw, ww), np.int32)
     if len(cands) > 1:
-        label = assign_labels(lv, slv, cands, centres)
+        label = assign_labels(lvt, slvt, cands, centres_t)
         keep = [0] + [k for k in range(1, len(cands)) if np.any(label == k)]
         remap = np.zeros(len(cands), np.int32)
         remap[keep] = np.arange(len(keep))
@@ -82,10 +97,10 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
                 inner = cv2.erode((label == k).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
                 if inner.sum() >= 50:
                     cands[k] = refine_velocity(
-                        lv,
-                        slv,
+                        lvt,
+                        slvt,
                         cands[k],
-                        centres,
+                        centres_t,
                         (conf_raw * inner).astype(np.float64),
                         steps=(0.25, 0.125, 0.0625),
                     )
@@ -94,7 +109,7 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
             if len(cands) == n_before:
                 break
         if len(cands) > 1:  # (no point kept a moving layer: the scene is still)
-            label = assign_labels(lv, slv, cands, centres)
+            label = assign_labels(lvt, slvt, cands, centres_t)
     check = layered_model_check(lv, slv, label, np.asarray(cands), vel_d, conf, centres)
     log.debug("layers: model check %s", check)
     # Back to the full grid: nearest-neighbour labels, velocities rescaled.
@@ -104,7 +119,9 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
     vels = np.array([[v[0] / sx, v[1] / sy] for v in cands], np.float32)
     lab_full, vels = kept_layers(lab_full, vels)
     if len(vels) > 1:  # (also on a frame no larger than the working grid: pooled labels)
-        lab_full, vels = kept_layers(refine_boundaries(lum, noise, lab_full, vels, centres), vels)
+        lab_full, vels = kept_layers(
+            refine_boundaries(lum_t, noise_t, lab_full, vels, centres_t), vels
+        )
     velocity = vels[lab_full]
     dense = np.stack(
         [cv2.resize(vel_d[..., 0] / sx, (w, h)), cv2.resize(vel_d[..., 1] / sy, (w, h))], -1
