@@ -374,11 +374,13 @@ def test_fit_through_geometry_recovers_what_interpolation_smooths():
     assert np.median(err_fit) < 0.01
 
 
-def test_deblur_reads_the_measuring_images_through_the_geometry(small_scene):
+def test_deblur_reads_the_measuring_images_through_the_geometry(small_scene, monkeypatch):
     """builtin:interior 96x80, translate:30,0, seed 3: the default deblur of the realistic
     rig, its bins fitted onto the VET grid through the measurement camera's sampling and
     the switching time in its exposure, comes within 1.3x of the ideal rig's RMS error
-    (0.648 vs 0.538 stops)."""
+    from the same 16 fit bins (0.596 vs 0.542 stops); the bins the motion needs (60)
+    help the realistic rig too (0.391 against its 0.596; the ideal rig's 0.250)."""
+    import stages.deblur.problem as problem
     from stages.deblur import deblur
     from stages.metrics import stops_error
 
@@ -391,7 +393,11 @@ def test_deblur_reads_the_measuring_images_through_the_geometry(small_scene):
         return stops_error(img.radiance, cap.truth, cap.T, cap.rig.frame_s)["all"]["rms"]
 
     real = rms("realistic")
-    assert real <= 1.3 * rms("ideal")
+    with monkeypatch.context() as m:
+        m.setattr(problem, "FIT_BINS_MAX", problem.FIT_BINS)
+        real16 = rms("realistic")
+        assert real16 <= 1.3 * rms("ideal")
+    assert real < 0.8 * real16
     # In tiles (cropped from the whole frame's fitted bins and equivalent T) alike.
     assert rms("realistic", tile=64) <= 1.15 * real
 
