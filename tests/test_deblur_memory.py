@@ -100,7 +100,7 @@ def test_bins_normal_product_holds_one_part_at_a_time():
 
 
 def test_growing_assembly_buffer_keeps_every_part_in_order():
-    from stages.deblur.operator import _Growing
+    from stages.deblur.assembly import Growing as _Growing
 
     rng = np.random.default_rng(3)
     parts = [rng.integers(0, 1000, rng.integers(0, 50)).astype(np.int32) for _ in range(30)]
