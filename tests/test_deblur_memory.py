@@ -43,6 +43,20 @@ def test_stacked_operator_products_equal_the_dense_stack():
     assert abs(lhs - rhs) <= 1e-5 * abs(lhs)
 
 
+def test_products_with_long_and_short_rows_equal_the_dense_ones():
+    # Long rows (the VET image's operator) go one column at a time, short rows (a
+    # bin's) all at once; a transposed (CSC) view alike.
+    rng = np.random.default_rng(6)
+    for density in (0.05, 0.5):
+        M = sp.random(70, 60, density=density, format="csr", dtype=np.float32, random_state=rng)
+        D = M.toarray().astype(np.float64)
+        x, y = rng.random((60, 3)), rng.random((70, 3))
+        np.testing.assert_allclose(product(M, x), D @ x, rtol=1e-5)
+        np.testing.assert_allclose(product(M.T, y), D.T @ y, rtol=1e-5)
+        np.testing.assert_allclose(product(M, x[:, :1]), D @ x[:, :1], rtol=1e-5)
+        assert product(M, x).dtype == np.float32
+
+
 def test_diag_normal_in_row_blocks_equals_the_whole(monkeypatch):
     rng = np.random.default_rng(1)
     (A,) = _parts(rng, n=50, nb=1)
