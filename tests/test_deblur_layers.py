@@ -437,3 +437,21 @@ def test_median_where_is_nanmedian():
             warnings.simplefilter("ignore", RuntimeWarning)
             ref = np.nan_to_num(np.nanmedian(np.where(valid, a, np.nan), axis=0))
         assert np.array_equal(median_where(a, valid), ref)
+        assert np.array_equal(median_where(a), np.median(a, axis=0))
+        a[0, 0, 0] = np.nan  # (a NaN among the values: numpy's sort, the same answer)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ref = np.nan_to_num(np.nanmedian(np.where(valid, a, np.nan), axis=0))
+        got = median_where(a, valid)
+        assert np.array_equal(got[1:], ref[1:]) and np.array_equal(got[0, 1:], ref[0, 1:])
+
+
+def test_sorting_network_sorts_like_numpy():
+    from stages.deblur.layers.alignment import sort_lanes
+
+    rng = np.random.default_rng(4)
+    for nb in range(1, 34):
+        a = rng.normal(size=(nb, 5, 6)).astype(np.float32)
+        a[:, 0] = 1.5  # (ties)
+        a[:, 1, :2] = np.inf
+        assert np.array_equal(sort_lanes(a), np.sort(a, axis=0))

@@ -173,7 +173,7 @@ def solve_image(
             data_diag = data_diag + Ab.diag_normal(wb)
         if S is not None:
             data_diag = data_diag + S.diag_normal(ws)
-    rhs = np.asarray(AT @ (w * obs.y).astype(np.float32), dtype=np.float64)
+    rhs = product(AT, (w * obs.y).astype(np.float32)).astype(np.float64)
     if Ab is not None:
         rhs += Ab.mvt_weighted(wb, obs.yb)
     if S is not None:
@@ -200,7 +200,7 @@ def solve_image(
         bins = pool.submit(Ab.normal, x, wb) if Ab is not None else None
         y = product(A, x)
         y *= w  # (float32 of the float64 product: as (w * y).astype(float32))
-        out = np.asarray(AT @ y, dtype=np.float64)
+        out = product(AT, y).astype(np.float64)
         img = x.reshape(h, wd, c)
         gx, gy = grad(img)
         gx *= sx
@@ -269,7 +269,7 @@ def fuse_still(
     its stream: its row there is the identity). ``fallback`` is kept where no datum has
     weight (clipped everywhere).
     """
-    rhs = np.asarray(A.T @ (obs.w * obs.y).astype(np.float32), dtype=np.float64)
+    rhs = product(A.T, (obs.w * obs.y).astype(np.float32)).astype(np.float64)
     if Ab is not None:
         rhs += Ab.mvt_weighted(obs.wb, obs.yb)
     if obs.stream is not None:

@@ -47,12 +47,17 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-#: Pixels per chunk while assembling a matrix (bounds the temporary memory).
-CHUNK_PIXELS = 1 << 12
-
-#: Sample positions are rounded to 1/POSITION_STEPS px: OpenCV's bilinear warps
-#: (``INTER_BITS`` = 5), with which the simulator renders the motion, use that grid.
-POSITION_STEPS = 32
+from .assembly import (
+    POSITION_STEPS,
+    Growing,
+    chunks,
+    corners,
+    expand_stencils,
+    moved,
+    near_half,
+    stencil_groups,
+    sum_rows,
+)
 
 #: A velocity field with at most this many distinct values is read as layers.
 MAX_LAYERS = 8
@@ -141,20 +146,6 @@ class Window:
     weight: np.ndarray | float
 
 
-def _reflect(i: np.ndarray, n: int) -> np.ndarray:
-    """Reflect integer indices into ``[0, n)`` like OpenCV's BORDER_REFLECT (fedcba|abcd)."""
-    if n == 1:
-        return np.zeros_like(i)
-    lo, hi = (int(i.min()), int(i.max())) if i.size else (0, 0)
-    if lo >= 0 and hi < n:
-        return i  # (all inside: the common case, no copy)
-    if lo >= -n and hi < 2 * n:  # (within one reflection: no modulo)
-        return np.where(i < 0, -1 - i, np.where(i >= n, 2 * n - 1 - i, i))
-    period = 2 * n
-    i = np.mod(i, period)
-    return np.where(i >= n, period - 1 - i, i)
-
-
 def vet_windows(
     T: np.ndarray, frame_s: float, subframe_s: float, n_subframes: int, leakage: float
 ) -> list[Window]:
@@ -208,103 +199,68 @@ def blur_matrix(
     """
     h, w = velocity.shape[:2]
     n = h * w
-    vel = velocity.reshape(n, 2).astype(np.float64)
     if isinstance(layers, str):
         layers = motion_layers(velocity)
     by_layer = layers is not None and (len(layers.velocity) > 1 or layers.trajectory is not None)
+    flat = velocity.reshape(n, 2)
+    # Per-pixel numbers are kept as one number where they are alike everywhere (a uniform
+    # velocity, a window given as one number), read through (N,) views of stride 0.
+    uniform = not by_layer and n > 0 and bool(np.all(flat == flat[0]))
+    vel = flat[:1] if uniform else flat
+    vel = vel.astype(np.float64)
+    vx, vy = vel[:, 0], vel[:, 1]
     if by_layer:
         # Samples along the fastest layer's path: any layer may cover the pixel.
-        speed = np.full(n, layers.max_speed())
+        speed = np.float64(layers.max_speed())
     else:
-        speed = np.hypot(vel[:, 0], vel[:, 1])
+        speed = np.hypot(vx, vy)
     wins = []
+    per_px = np.zeros(1 if uniform else n, np.int64)
     for win in windows:
-        # (Views: a window bound or weight given as one number takes no memory.)
-        a = np.broadcast_to(np.asarray(win.start, np.float64), (h, w)).reshape(-1)
-        b = np.broadcast_to(np.asarray(win.end, np.float64), (h, w)).reshape(-1)
-        wt = np.broadcast_to(np.asarray(win.weight, np.float64), (h, w)).reshape(-1)
+        a, b, wt = (np.asarray(v, np.float64).reshape(-1) for v in (win.start, win.end, win.weight))
         dur = np.maximum(b - a, 0.0)
         ns = np.ceil(speed * dur / step_px).astype(np.int64)
         if min_dt:
             ns = np.minimum(ns, np.maximum(np.floor(dur / min_dt), 1).astype(np.int64))
         ns = np.clip(ns, 1, max_samples)
-        ns[(dur <= 0) | (wt == 0)] = 0
-        wins.append((a, dur, wt, ns))
-
+        ns = np.where((dur <= 0) | (wt == 0), 0, ns)
+        per_px = per_px + ns
+        wins.append(tuple(np.broadcast_to(v, (n,)) for v in (a, dur, wt, ns)))
+    per_px = np.broadcast_to(per_px, (n,))
+    vx, vy = (None, None) if by_layer else (np.broadcast_to(v, (n,)) for v in (vx, vy))
+    del vel, flat
+    motion = (vx, vy, layers if by_layer else None)
+    plan = None if by_layer else _stencil_plan(vx, vy, windows, wins, h, w)
+    if plan is not None:
+        s_rows, s_gid, reps = plan
+        r_cols, r_vals, r_counts, tie = _row_entries(reps, wins, motion, h, w, ties=True)
+        if not tie.any():  # (else, rarely, every row one by one)
+            generic = np.ones(n, bool)
+            generic[s_rows] = False
+            g_rows = np.flatnonzero(generic)
+            del generic
+            parts = [
+                _row_entries(g_rows[i0:i1], wins, motion, h, w) for i0, i1 in chunks(per_px[g_rows])
+            ]
+            g_parts = [np.concatenate([p[i] for p in parts]) for i in range(3)] if parts else []
+            del parts
+            if not g_parts:
+                g_parts = [np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, np.int64)]
+            return expand_stencils(
+                n,
+                (g_rows, g_parts[2], g_parts[0], g_parts[1]),
+                (s_rows, s_gid, reps, r_counts, r_cols, r_vals),
+            )
+    # Row by row, in chunks of pixels. The index and value arrays grow geometrically, a
+    # few large blocks (not one small part per chunk kept alive among the chunks'
+    # temporaries, which fragments the heap). (Column indices are below n: int32 for any
+    # frame under 2**31 pixels.)
     indptr = np.zeros(n + 1, np.int64)
-    # The index and value arrays grow geometrically, a few large blocks (not one small
-    # part per chunk kept alive among the chunks' temporaries, which fragments the heap).
-    # (Column indices are below n: int32 for any frame under 2**31 pixels.)
-    per_px = sum(float(ns.mean()) for *_, ns in wins) if n else 0.0
-    out = _Growing(int(2 * per_px * n) + CHUNK_PIXELS)
-    for c0 in range(0, n, CHUNK_PIXELS):
-        c1 = min(n, c0 + CHUNK_PIXELS)
-        rows_l, cols_l, vals_l = [], [], []
-        for a, dur, wt, ns in wins:
-            cnt = ns[c0:c1]
-            total = int(cnt.sum())
-            if total == 0:
-                continue
-            local = np.repeat(np.arange(c1 - c0), cnt)
-            first = np.cumsum(cnt) - cnt
-            k = np.arange(total) - np.repeat(first, cnt)
-            pix = local + c0
-            dt = dur[pix] / cnt[local]
-            t = a[pix] + (k + 0.5) * dt
-            weight = wt[pix] * dt
-            py, px = np.divmod(pix, w)
-            if by_layer:
-                x, y = _layered_positions(layers, px, py, t, h, w)
-            else:
-                x = px - vel[pix, 0] * t
-                y = py - vel[pix, 1] * t
-            # Positions on OpenCV's interpolation grid (as the simulator's warps sample):
-            # a motion along one axis with a vanishing component along the other then
-            # keeps one row (or column) of bilinear weights, not two.
-            x = np.rint(x * POSITION_STEPS) / POSITION_STEPS
-            y = np.rint(y * POSITION_STEPS) / POSITION_STEPS
-            x0 = np.floor(x)
-            y0 = np.floor(y)
-            fx = x - x0
-            fy = y - y0
-            x0 = x0.astype(np.int64)
-            y0 = y0.astype(np.int64)
-            xa, xb = _reflect(x0, w), _reflect(x0 + 1, w)
-            ya, yb = _reflect(y0, h), _reflect(y0 + 1, h)
-            # Corners with zero weight everywhere (a motion along one axis keeps one row
-            # or column of bilinear weights) are skipped whole.
-            has_fx, has_fy = bool(np.any(fx > 0)), bool(np.any(fy > 0))
-            gx, gy = 1 - fx, 1 - fy
-            ya *= w
-            corners = [(ya, xa, gx * gy)]
-            if has_fx:
-                corners.append((ya, xb, fx * gy))
-            if has_fy:
-                yb *= w
-                corners.append((yb, xa, gx * fy))
-                if has_fx:
-                    corners.append((yb, xb, fx * fy))
-            for yy, xx, ww in corners:
-                ww *= weight
-                keep = ww > 0
-                if keep.all():
-                    rows_l.append(local)
-                    cols_l.append(yy + xx)
-                    vals_l.append(ww)
-                else:
-                    rows_l.append(local[keep])
-                    cols_l.append((yy + xx)[keep])
-                    vals_l.append(ww[keep])
-        if rows_l:
-            rows = np.concatenate(rows_l)
-            cols = np.concatenate(cols_l)
-            vals = np.concatenate(vals_l)
-            blk = sp.csr_matrix((vals.astype(np.float32), (rows, cols)), shape=(c1 - c0, n))
-            blk.sum_duplicates()
-            indptr[c0 + 1 : c1 + 1] = blk.indptr[1:] + out.nnz
-            out.append(blk.indices, blk.data)
-        else:
-            indptr[c0 + 1 : c1 + 1] = out.nnz
+    out = Growing(2 * int(per_px.sum()) + 1)
+    for c0, c1 in chunks(per_px):
+        indices, data, counts = _row_entries(np.arange(c0, c1), wins, motion, h, w)
+        indptr[c0 + 1 : c1 + 1] = np.cumsum(counts) + out.nnz
+        out.append(indices, data)
     indices, data = out.finish()
     itype = np.int32 if out.nnz < 2**31 - 1 else np.int64
     return sp.csr_matrix(
@@ -312,45 +268,86 @@ def blur_matrix(
     )
 
 
-def _mapped(n: int, dtype: type) -> np.ndarray:
-    """An uninitialised array of ``n`` items in an anonymous memory map of its own."""
-    import mmap
+def _row_entries(pix: np.ndarray, wins: list, motion: tuple, h: int, w: int, ties: bool = False):
+    """The rows of pixels ``pix`` (sorted int64): ``(columns int32, values float32, entries
+    per row)``, each row's columns sorted, and with ``ties`` a bool per row: some sample
+    of its path lies within 1e-6 of a rounding tie of the position grid (see
+    :func:`stages.deblur.assembly.expand_stencils`). ``wins``: per window ``(start,
+    duration, weight, samples)`` per pixel; ``motion``: ``(vx, vy, layers)``, the
+    per-pixel velocity or (``layers`` not None) the layers."""
+    vx, vy, layers = motion
+    m = len(pix)
+    py, px = np.divmod(pix, w)
+    parts = []
+    tie = np.zeros(m, bool) if ties else None
+    for a, dur, wt, ns in wins:
+        cnt = ns[pix]
+        n_s = int(cnt.sum())
+        if n_s == 0:
+            continue
+        # Per-pixel quantities repeated over the pixel's samples (the same numbers as
+        # computed per sample, without gathering).
+        local = np.repeat(np.arange(m), cnt)
+        k = np.arange(n_s) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        a_p, dur_p = a[pix], dur[pix]
+        dt_px = dur_p / np.maximum(cnt, 1)
+        dt = np.repeat(dt_px, cnt)
+        t = np.repeat(a_p, cnt) + (k + 0.5) * dt
+        del k, dt
+        weight = np.repeat(wt[pix] * dt_px, cnt)
+        pxs, pys = np.repeat(px, cnt), np.repeat(py, cnt)
+        if layers is not None:
+            x, y = _layered_positions(layers, pxs, pys, t, h, w)
+        else:
+            reach = float(np.abs(a_p + dur_p).max()) + float(np.abs(a_p).max())
+            x = moved(pxs, vx[pix], cnt, t, reach)
+            y = moved(pys, vy[pix], cnt, t, reach)
+            for v, pos in ((vx, x), (vy, y)) if ties else ():
+                if pos is not None:
+                    near = near_half(np.repeat(v[pix], cnt) * t * POSITION_STEPS)
+                    tie |= np.bincount(local[near], minlength=m) > 0
+        del t
+        parts.append((local, cnt, *corners(x, y, pxs, pys, weight, h, w)))
+    if parts:
+        out = sum_rows(parts, m, w, h * w)
+    else:
+        out = (np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(m, np.int64))
+    return (*out, tie) if ties else out
 
-    itemsize = np.dtype(dtype).itemsize
-    return np.frombuffer(mmap.mmap(-1, n * itemsize), dtype, count=n)
+
+def _compact(v: np.ndarray) -> np.ndarray:
+    """``v`` (N,), or its one number (1,) when it is a view of stride 0."""
+    return v[:1] if v.strides == (0,) else v
 
 
-class _Growing:
-    """Column index (int32) and float32 value arrays appended to, grown by half when full.
-
-    Each array is its own anonymous memory map: the pages of the capacity not yet
-    filled are never touched, so they take address space but no resident memory; the
-    filled part is returned as a view (no final copy); and the map goes back to the
-    system as a whole when the matrix is freed (an array on the heap, among the
-    assembly's temporaries, would pin them).
-    """
-
-    def __init__(self, capacity: int):
-        self.indices = _mapped(max(capacity, 1), np.int32)
-        self.data = _mapped(max(capacity, 1), np.float32)
-        self.nnz = 0
-
-    def append(self, indices: np.ndarray, data: np.ndarray) -> None:
-        end = self.nnz + len(indices)
-        if end > len(self.indices):
-            cap = max(end, len(self.indices) * 3 // 2)
-            for name in ("indices", "data"):
-                old = getattr(self, name)
-                new = _mapped(cap, old.dtype)
-                new[: self.nnz] = old[: self.nnz]
-                setattr(self, name, new)
-        self.indices[self.nnz : end] = indices
-        self.data[self.nnz : end] = data
-        self.nnz = end
-
-    def finish(self) -> tuple[np.ndarray, np.ndarray]:
-        """The filled parts of the arrays (views)."""
-        return self.indices[: self.nnz], self.data[: self.nnz]
+def _stencil_plan(vx, vy, windows: Sequence[Window], wins: list, h: int, w: int):
+    """Rows that read their group's pattern shifted with their pixel (see
+    :func:`stages.deblur.assembly.expand_stencils`): pixels away from the border by more
+    than their path's reach, grouped by equal velocity and exposure windows. Returns
+    :func:`stages.deblur.assembly.stencil_groups`' answer (None: no such plan)."""
+    n = h * w
+    used = [(_compact(a), _compact(d)) for a, d, _w, ns in wins if _compact(ns).any()]
+    t_lo = min((float(a.min()) for a, _d in used), default=0.0)
+    t_hi = max((float((a + d).max()) for a, d in used), default=0.0)
+    py, px = np.divmod(np.arange(n, dtype=np.int64), w)
+    eligible = np.ones(n, bool)
+    for v, p, size in ((vx, px, w), (vy, py, h)):
+        v = _compact(v)
+        far = max(abs(t_lo), abs(t_hi))
+        still = np.abs(v) * (far * POSITION_STEPS) < 0.49  # (the path keeps its pixel)
+        if t_lo >= 0:  # displacement -v t for t in [0, t_hi]
+            lo, hi = np.minimum(-v * t_hi, 0.0), np.maximum(-v * t_hi, 0.0)
+        else:
+            lo, hi = -np.abs(v) * far, np.abs(v) * far
+        eligible &= still | ((p + lo - 1 >= 0) & (p + hi + 2 <= size - 1))
+    del px, py
+    keys, seen = [vx, vy], set()
+    for win in windows:
+        for val in (win.start, win.end, win.weight):
+            if np.ndim(val) and id(val) not in seen:
+                seen.add(id(val))
+                keys.append(np.asarray(val).reshape(-1))
+    return stencil_groups(keys, eligible)
 
 
 def _layered_positions(

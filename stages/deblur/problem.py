@@ -192,15 +192,28 @@ def effective_T(cap: Capture, tf: float) -> np.ndarray:
     return np.clip(t, 0.0, tf).astype(np.float32)
 
 
-def product(M: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
-    """``M @ x`` for ``x`` of shape (N, C), float32 (rows, C).
+#: Mean non-zeros per row above which a product with several columns goes one column at
+#: a time (:func:`product`).
+LONG_ROWS_NNZ = 8
+
+
+def product(M: sp.spmatrix, x: np.ndarray) -> np.ndarray:
+    """``M @ x`` for ``x`` of shape (N, C), float32 (rows, C); ``M`` CSR or CSC (a
+    transposed view).
 
     A float32 ``x`` keeps the product in the matrix's precision with no upcast copy of
-    ``M``; several columns go through scipy's multi-vector kernel, which reads the
-    matrix once for all of them.
+    ``M``. Several columns go through scipy's multi-vector kernel, which reads the matrix
+    once for all of them, where rows are short (a measuring bin's operator); where they
+    are long (over :data:`LONG_ROWS_NNZ` non-zeros on average: the VET image's), one
+    column at a time through the single-vector kernel, which is faster there.
     """
     if x.shape[1] == 1:
         return (M @ np.ascontiguousarray(x[:, 0], np.float32)).reshape(-1, 1)
+    if M.nnz > LONG_ROWS_NNZ * M.shape[0]:
+        out = np.empty((M.shape[0], x.shape[1]), np.float32)
+        for c in range(x.shape[1]):
+            out[:, c] = M @ np.ascontiguousarray(x[:, c], np.float32)
+        return out
     return np.asarray(M @ np.ascontiguousarray(x, np.float32), np.float32)
 
 

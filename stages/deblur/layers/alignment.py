@@ -51,17 +51,56 @@ def _grid(v: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-def median_where(a: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Median over axis 0 of the floats ``a`` (B, H, W) where ``valid``, 0 where none is.
+def median_where(a: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """Median over axis 0 of the floats ``a`` (B, H, W) where ``valid`` (every value where
+    None), 0 where none is.
 
-    The value of ``np.nan_to_num(np.nanmedian(np.where(valid, a, np.nan), axis=0))``
-    (the mean of the two middle values for an even count), from one sort.
+    The value of ``np.nan_to_num(np.nanmedian(np.where(valid, a, np.nan), axis=0))`` (the
+    mean of the two middle values for an even count; ``np.median(a, axis=0)`` with every
+    value valid), from one sort of the B values of every point at once
+    (:func:`sort_lanes`; with a NaN among the values, numpy's sort along axis 0).
     """
-    s = np.sort(np.where(valid, a, np.nan), axis=0)  # (NaN sorts last)
-    n = valid.sum(axis=0)
+    n = np.full(a.shape[1:], a.shape[0]) if valid is None else valid.sum(axis=0)
+    if np.isnan(a).any():
+        s = np.sort(a if valid is None else np.where(valid, a, np.nan), axis=0)  # NaN last
+    else:  # (invalid values as +inf, last like NaN: the middle ones are the same)
+        s = sort_lanes(a if valid is None else np.where(valid, a, np.inf))
     lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[None], axis=0)[0]
     hi = np.take_along_axis(s, np.maximum(n // 2 - (n == 0), 0)[None], axis=0)[0]
     return np.where(n > 0, (lo + hi) / a.dtype.type(2), 0).astype(a.dtype, copy=False)
+
+
+def _merge_pairs(n: int) -> list[tuple[int, int]]:
+    """Compare-exchange pairs ``(i, j)``, ``i < j < n``, of Batcher's odd-even merge sort
+    (on the next power of two; pairs that reach past ``n`` are left out: the missing
+    values count as the largest, which those pairs would not move)."""
+    size = 1
+    while size < n:
+        size *= 2
+    pairs = []
+    p = 1
+    while p < size:
+        k = p
+        while k >= 1:
+            for j in range(k % p, size - k, 2 * k):
+                for i in range(min(k, size - j - k)):
+                    if (i + j) // (2 * p) == (i + j + k) // (2 * p) and i + j + k < n:
+                        pairs.append((i + j, i + j + k))
+            k //= 2
+        p *= 2
+    return pairs
+
+
+def sort_lanes(a: np.ndarray) -> np.ndarray:
+    """``np.sort(a, axis=0)`` of a float array with no NaN, (B, ...): a sorting network on
+    whole planes (a few elementwise minima and maxima per pair, fast for a small B where
+    numpy sorts each short lane on its own)."""
+    planes = list(np.array(a, copy=True))
+    for i, j in _merge_pairs(len(planes)):
+        lo = np.minimum(planes[i], planes[j])
+        np.maximum(planes[i], planes[j], out=planes[j])
+        planes[i] = lo
+    return np.stack(planes) if planes else np.array(a, copy=True)
 
 
 def inside(v: np.ndarray, centres: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -139,10 +178,7 @@ def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None):
     ins = inside(v, centres, h, w)
     if visible is not None:
         ins &= visible
-    if ins.all():
-        med = np.median(comp, axis=0)
-    else:
-        med = median_where(comp, ins)
+    med = median_where(comp, None if ins.all() else ins)
     z2 = np.minimum(((comp - med[None]) / sig) ** 2, trunc)
     cost = np.where(ins, z2, 1.0).mean(axis=0)
     return cost.astype(np.float32)
