@@ -455,3 +455,21 @@ def test_sorting_network_sorts_like_numpy():
         a[:, 0] = 1.5  # (ties)
         a[:, 1, :2] = np.inf
         assert np.array_equal(sort_lanes(a), np.sort(a, axis=0))
+
+
+def test_binned_work_frames_are_the_work_frames_of_the_time_bins():
+    """The track bins of a large frame, made one full-resolution bin at a time, equal
+    the working-grid frames of all the bins made at once (the memory of one bin, not
+    all)."""
+    from stages.deblur.layers.bins import binned_work_frames, rate_frames, work_frames
+
+    cap = _vet(builtin_chart(200, 150), "translate:30,0", seed=0)
+    assert cap.keeps_stream
+    got = binned_work_frames(cap, 16, 100)
+    bins = cap.time_bins(16)
+    want = work_frames(*rate_frames(bins), 100)
+    for g, w in zip(got[:3], want[:3], strict=True):
+        assert g.shape == (16, 75, 100)
+        np.testing.assert_array_equal(g, w)
+    assert got[3] == want[3] == (0.5, 0.5)
+    np.testing.assert_array_equal(got[4], bins.measure_times.mean(axis=1))

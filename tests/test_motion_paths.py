@@ -13,6 +13,17 @@ from stages.errors import InputError
 from stages.motion import Oscillate, Shake, parse_motion, trajectory_times
 
 
+@pytest.fixture
+def sixteen_fit_bins(monkeypatch):
+    """The deblur fits 16 time bins whatever the motion: these tests are about the paths
+    (measured, refined, in tiles), their figures were taken with 16, and a shake's speed
+    would otherwise take 64 at four times the cost (the bins a motion needs are tested in
+    tests/test_deblur_stream.py)."""
+    import stages.deblur.problem as problem
+
+    monkeypatch.setattr(problem, "FIT_BINS_MAX", problem.FIT_BINS)
+
+
 def test_specs_parse_and_round_trip():
     assert parse_motion("shake:3").spec == "shake:3,0"
     assert parse_motion("shake:3,7") == Shake(3.0, 7)
@@ -153,6 +164,7 @@ def test_cli_simulates_a_shake(tmp_path):
     assert r.stderr.strip().splitlines()[-1].startswith("Error: Invalid value for '--motion'")
 
 
+@pytest.mark.usefixtures("sixteen_fit_bins")
 def test_default_deblur_follows_a_camera_shake():
     """A shaken capture that keeps its stream: the default deblur measures the path most
     of the frame follows and deblurs along it (model ``layer-paths``), closer to the truth
@@ -194,6 +206,7 @@ def test_default_deblur_follows_a_camera_shake():
     assert deblur(obj)[0].meta["motion_model"] == "layers"
 
 
+@pytest.mark.usefixtures("sixteen_fit_bins")
 def test_the_measured_camera_path_is_refined_on_the_misfit(shared_hdr):
     """The path registered from the stream carries each group's noise; Gauss-Newton steps
     on its knots between image steps bring the deblur closer to the oracle's: Cannon
@@ -220,6 +233,7 @@ def test_the_measured_camera_path_is_refined_on_the_misfit(shared_hdr):
     assert rms(refined) < 0.9 * rms(measured)
 
 
+@pytest.mark.usefixtures("sixteen_fit_bins")
 def test_tiles_follow_the_measured_camera_path():
     """A shaken capture solved in tiles: each tile deblurs along its crop of the frame's
     measured path (model ``layer-paths``, halo covering the path's farthest excursion),

@@ -348,7 +348,7 @@ def deblur(
 
     # Time bins of a stream that the misfit reads: short enough for the motion to blur
     # none of them by more than a fraction of a pixel.
-    n_fit = fit_bins(_max_speed(vel0, layers), tf, rig.n_subframes)
+    n_fit = fit_bins(_max_speed(vel0, layers), tf, rig.n_subframes, cap.shape[0] * cap.shape[1])
     # Pixels saturated in the VET image and in the first bin: only a lower bound is known.
     # (Those saturated in the VET image alone are measured by the bins, which the default
     # method fits; the paper's method, which fits I only, keeps their hdr-static value.)

@@ -64,11 +64,17 @@ FIT_BINS = 16
 FIT_BINS_MAX = 64
 #: Largest distance (px) the fastest motion may travel within one fit bin.
 FIT_BIN_TRAVEL_PX = 0.5
+#: Most fit bins times pixels: the bins' operators and their products grow with both, so
+#: a large frame takes fewer bins (at least :data:`FIT_BINS`).
+FIT_BIN_PIXELS = 1 << 24
 
 
-def fit_bins(max_speed_px_s: float, span_s: float, n_subframes: int) -> int:
+def fit_bins(
+    max_speed_px_s: float, span_s: float, n_subframes: int, pixels: int | None = None
+) -> int:
     """Time bins the misfit reads of a stream capture whose fastest motion is
-    ``max_speed_px_s`` over a frame of ``span_s`` seconds and ``n_subframes`` subframes.
+    ``max_speed_px_s`` over a frame of ``span_s`` seconds and ``n_subframes`` subframes,
+    ``pixels`` in all (H W).
 
     A bin sums its subframes at fixed pixels, so a motion blurs it by the distance it
     travels within the bin; the model states that blur, but what it removed from the
@@ -76,13 +82,15 @@ def fit_bins(max_speed_px_s: float, span_s: float, n_subframes: int) -> int:
     back, while a burst merge aligns each subframe on its own. Bins short enough that
     the fastest motion travels at most :data:`FIT_BIN_TRAVEL_PX` within one keep that
     detail; the read noise they carry in all is the same whatever the binning (one per
-    subframe). At least :data:`FIT_BINS`, at most :data:`FIT_BINS_MAX` (the operators'
-    cost grows with the bins), and bins of two subframes at least (a stream binned
-    into single subframes would be the stream itself).
+    subframe). At least :data:`FIT_BINS`; at most :data:`FIT_BINS_MAX`, and
+    :data:`FIT_BIN_PIXELS` over ``pixels`` (a compute budget: the operators' cost grows
+    with bins times pixels), and bins of two subframes at least (a stream binned into
+    single subframes would be the stream itself).
     """
     travel = max(float(max_speed_px_s), 0.0) * max(float(span_s), 0.0)
     n = int(np.ceil(travel / FIT_BIN_TRAVEL_PX)) if np.isfinite(travel) else FIT_BINS_MAX
-    return int(min(max(n, FIT_BINS), FIT_BINS_MAX, max(int(n_subframes) // 2, 1)))
+    most = FIT_BINS_MAX if not pixels else min(FIT_BINS_MAX, FIT_BIN_PIXELS // int(pixels))
+    return int(min(max(n, FIT_BINS), max(most, FIT_BINS), max(int(n_subframes) // 2, 1)))
 
 
 def observations(

@@ -115,12 +115,10 @@ class Capture:
         if self.measure is None or self.measure_times is None or self.measure.shape[0] <= n_bins:
             return self
         edges = measure_bin_edges(self.measure.shape[0], n_bins)
-        bins = np.stack(
-            [
-                self.measure[a:b].astype(np.float32).sum(axis=0)
-                for a, b in zip(edges[:-1], edges[1:], strict=True)
-            ]
-        )
+        # Filled in place: no list of bins beside their stacked copy.
+        bins = np.empty((len(edges) - 1, *self.measure.shape[1:]), np.float32)
+        for k, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+            np.sum(self.measure[a:b], axis=0, dtype=np.float32, out=bins[k])
         mt = np.asarray(self.measure_times, np.float64)
         times = np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
         n = self.measure_counts()

@@ -2,7 +2,7 @@
 
 A capture that keeps its whole measuring stream (131 subframes) is deblurred through
 time bins of it, as many as the motion needs (:func:`stages.deblur.problem.fit_bins`:
-60 for this 30 px/s pan). For 16, 32 and 64 bins held fixed, and the default ("auto"),
+51 for this 30 px/s pan at 640x512). For 16, 32 and 64 bins held fixed, and the default,
 each in its own process (so that the peak memory is that run's): the deblur's time,
 peak memory (ru_maxrss) and dark / bright / all-pixel error in stops, on
 builtin:interior (mono) and builtin:chart (RGB) with translate:30,0 and the estimated

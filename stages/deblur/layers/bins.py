@@ -28,29 +28,57 @@ def log_frames(lum: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return lv, slv
 
 
-def work_frames(lum: np.ndarray, noise: np.ndarray, valid: np.ndarray, max_px: int):
-    """Log-rate bins, their noise in log units and validity, at a working scale."""
+def _downsampled(lum: np.ndarray, noise: np.ndarray, valid: np.ndarray, max_px: int):
+    """Rates (B, H, W), their noise and validity area-averaged to at most ``max_px`` on
+    the longer side; with the scale ``(sx, sy)`` of the working grid."""
     import cv2
 
     nb, h, w = lum.shape
     scale = min(1.0, max_px / max(h, w))
-    if scale < 1.0:
-        size = (max(8, int(round(w * scale))), max(8, int(round(h * scale))))
-        lum = np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in lum])
-        noise = np.stack(
-            [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in noise]
-        ) * np.float32(scale)
-        valid = np.stack(
-            [
-                cv2.resize(v.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.999
-                for v in valid
-            ]
-        )
-        scale_xy = (size[0] / w, size[1] / h)
-    else:
-        scale_xy = (1.0, 1.0)
+    if scale >= 1.0:
+        return lum, noise, valid, (1.0, 1.0)
+    size = (max(8, int(round(w * scale))), max(8, int(round(h * scale))))
+    lum = np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in lum])
+    noise = np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in noise]) * (
+        np.float32(scale)
+    )
+    valid = np.stack(
+        [
+            cv2.resize(v.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.999
+            for v in valid
+        ]
+    )
+    return lum, noise, valid, (size[0] / w, size[1] / h)
+
+
+def work_frames(lum: np.ndarray, noise: np.ndarray, valid: np.ndarray, max_px: int):
+    """Log-rate bins, their noise in log units and validity, at a working scale."""
+    lum, noise, valid, scale_xy = _downsampled(lum, noise, valid, max_px)
     lv, slv = log_frames(lum, noise)
     return lv, slv, valid, scale_xy
+
+
+def binned_work_frames(cap: Capture, n_bins: int, max_px: int):
+    """:func:`work_frames` of ``cap``'s stream summed into ``n_bins`` time bins, one bin
+    at full resolution at a time (no full-resolution array of all of them); with the
+    bins' centre times (s)."""
+    from dataclasses import replace
+
+    binned = cap.time_bins(n_bins)
+    counts = binned.measure_counts()
+    parts = []
+    for b in range(binned.measure.shape[0]):
+        one = replace(
+            binned,
+            measure=binned.measure[b : b + 1],
+            measure_times=binned.measure_times[b : b + 1],
+            meta={**binned.meta, "measure_subframes": [int(counts[b])]},
+        )
+        parts.append(_downsampled(*rate_frames(one), max_px))
+    lum, noise, valid = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    lv, slv = log_frames(lum, noise)
+    centres = binned.measure_times.mean(axis=1).astype(np.float64)
+    return lv, slv, valid, parts[0][3], centres
 
 
 def equalise_all(lv: np.ndarray) -> list[np.ndarray]:

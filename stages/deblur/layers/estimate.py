@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...formats.capture import Capture
-from .bins import rate_frames, work_frames
+from .bins import binned_work_frames, rate_frames, work_frames
 from .labels import SAME_LAYER_PX_S, assign_labels, kept_layers, merge_alike, refine_boundaries
 from .model_check import ModelCheck, layered_model_check
 from .velocities import dense_long_baseline, refine_velocity, velocity_modes
@@ -53,15 +53,19 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
     hw, ww = lv.shape[1:]
     centres = binned.measure_times.mean(axis=1).astype(np.float64)
     votes, wts, vel_d, conf = dense_long_baseline(lv, slv, centres)
-    # The track evidence: on TRACK_BINS bins of a stream, else on the same bins.
+    # The track evidence: on TRACK_BINS bins of a stream, else on the same bins; the
+    # boundaries at full resolution from them too where the frame is the working grid
+    # (a larger frame's would hold all of them at full resolution: its motion bins').
+    lum_t, noise_t, lvt, slvt, centres_t = lum, noise, lv, slv, centres
+    centres_b = centres
     if cap.keeps_stream and cap.measure.shape[0] > TRACK_BINS > binned.measure.shape[0]:
-        fine = cap.time_bins(TRACK_BINS)
-        lum_t, noise_t, valid_t = rate_frames(fine)
-        lvt, slvt, _valid, _scale = work_frames(lum_t, noise_t, valid_t, MAX_WORK_PX)
-        centres_t = fine.measure_times.mean(axis=1).astype(np.float64)
-        del fine, valid_t, _valid
-    else:
-        lum_t, noise_t, lvt, slvt, centres_t = lum, noise, lv, slv, centres
+        if max(h, w) <= MAX_WORK_PX:  # (the working grid: full resolution, small)
+            fine = cap.time_bins(TRACK_BINS)
+            lum_t, noise_t, valid_t = rate_frames(fine)
+            lvt, slvt, _valid, _scale = work_frames(lum_t, noise_t, valid_t, MAX_WORK_PX)
+            centres_t = centres_b = fine.measure_times.mean(axis=1).astype(np.float64)
+        else:
+            lvt, slvt, _valid, _scale, centres_t = binned_work_frames(cap, TRACK_BINS, MAX_WORK_PX)
     ok = valid.all(axis=0)
     conf_raw = np.median(wts, axis=0) * ok
     conf = conf * ok
@@ -120,7 +124,7 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
     lab_full, vels = kept_layers(lab_full, vels)
     if len(vels) > 1:  # (also on a frame no larger than the working grid: pooled labels)
         lab_full, vels = kept_layers(
-            refine_boundaries(lum_t, noise_t, lab_full, vels, centres_t), vels
+            refine_boundaries(lum_t, noise_t, lab_full, vels, centres_b), vels
         )
     velocity = vels[lab_full]
     dense = np.stack(
