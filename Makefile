@@ -31,11 +31,12 @@ demo: $(STAMP)
 	@echo "demo: still scene: $(DEMO_DIR)/still.png and $(DEMO_DIR)/exposure_time.png;" \
 	      "panning 30 px/s: $(DEMO_DIR)/pan.static.png (I/T, blurred) vs $(DEMO_DIR)/pan.deblur.png" >&2
 
+# The suite on every core (pytest-xdist); a document's examples stay on one worker, in order.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup
 
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -m slow -n auto --dist loadgroup
 
 # GenICam cameras (issue 20): Debian's Aravis (its fake GigE Vision camera included) and
 # PyGObject in the venv, then the camera tests against two fake cameras on loopback (the

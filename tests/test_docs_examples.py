@@ -144,7 +144,12 @@ def _is_slow(text: str) -> bool:
 
 CASES = [
     pytest.param(
-        doc, line, text, id=f"{doc.name}:{line}", marks=[pytest.mark.slow] if _is_slow(text) else []
+        doc,
+        line,
+        text,
+        id=f"{doc.name}:{line}",
+        # A document's blocks run in order in one folder: on one pytest-xdist worker.
+        marks=[pytest.mark.xdist_group(doc.name), *([pytest.mark.slow] if _is_slow(text) else [])],
     )
     for doc in DOCS
     for line, text in shell_blocks(doc)

@@ -233,6 +233,7 @@ def test_the_measured_camera_path_is_refined_on_the_misfit(shared_hdr):
     assert rms(refined) < 0.9 * rms(measured)
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("sixteen_fit_bins")
 def test_tiles_follow_the_measured_camera_path():
     """A shaken capture solved in tiles: each tile deblurs along its crop of the frame's

@@ -131,7 +131,7 @@ def test_closed_stdout_pipe(tmp_path):
     private_tmp = tmp_path / "tmp"
     private_tmp.mkdir()
     env = dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(private_tmp))
-    args = ["simulate", "builtin:interior", "--size", "480x360", "-o", "-"]
+    args = ["simulate", "builtin:interior", "--size", "128x96", "-o", "-"]
     proc = subprocess.Popen(
         [sys.executable, "-m", "vet_cli", "-q", *args],
         stdout=subprocess.PIPE,
