@@ -13,7 +13,9 @@ layer              channels     meaning
 ``M00`` ...        Y or R,G,B   optional measuring images: each is the sum of the
                                 measuring subframes in one time bin, DN; bin times
                                 in ``meta["measure_times"]``; two digits at least
-                                (``M100`` follows ``M99``)
+                                (``M100`` follows ``M99``); of the measurement
+                                camera's size (``rig.measure_size``), which may differ
+                                from the VET sensor's: then a second part of an EXR
 ``truth``          Y or R,G,B   optional ground truth: scene radiance at t = 0, in
                                 scene units (simulated captures)
 ``truth_motion``   u, v         optional true image velocity at t = 0, pixels/s
@@ -185,12 +187,6 @@ class Capture:
 
     # --- conversion to/from the layered container ---------------------------------
     def to_layered(self) -> Layered:
-        if self.measure is not None and self.measure.shape[1:3] != self.I.shape[:2]:
-            raise FormatError(
-                f"measuring images of {self.measure.shape[2]}x{self.measure.shape[1]} cannot be "
-                f"stored beside a {self.I.shape[1]}x{self.I.shape[0]} VET image (a capture "
-                "file's layers share one size): the rig's measure_size must be its sensor_size"
-            )
         data = Layered()
         data.add("I", self.I, self.channels)
         data.add("T", self.T, ["Y"])
@@ -198,7 +194,7 @@ class Capture:
             data.add("A", self.transmittance, ["Y"])
         if self.measure is not None:
             for b in range(self.measure.shape[0]):
-                data.add(f"M{b:02d}", self.measure[b], self.channels)
+                data.add(f"M{b:02d}", self.measure[b], self.channels, own_size=True)
         if self.truth is not None:
             data.add("truth", self.truth, self.channels)
         if self.truth_motion is not None:

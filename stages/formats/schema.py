@@ -382,9 +382,10 @@ def check_layers(
 
     A capture's I channels against ``channels`` and its measuring layers against
     ``measure_times``; an HDR image's mask codes against ``mask_codes``; a motion
-    field's velocities against :data:`MAX_SPEED_IMAGES_PER_S`. (Layer sizes
-    against the declared sensor size are checked by the container readers of
-    :mod:`stages.formats.layered`, before the pixels are read.)
+    field's velocities against :data:`MAX_SPEED_IMAGES_PER_S`; a capture's measuring
+    layers share one size. (Layer sizes against the declared sensor and measurement
+    camera sizes are checked by the container readers, before the pixels are read:
+    :class:`stages.formats.container.SizeCheck`.)
 
     Raises
     ------
@@ -413,6 +414,12 @@ def check_layers(
                 raise FormatError(
                     f"{what}: layer {name!r} has channels {channels[name]}; allowed {chans}"
                 )
+        sizes = sorted({layers[k].shape[:2] for k in bins})
+        if len(sizes) > 1:
+            raise FormatError(
+                f"{what}: measuring layers have different sizes "
+                f"{', '.join(f'{w}x{h}' for h, w in sizes)}; allowed one"
+            )
         times = meta.get("measure_times")
         if bins and (times is None or len(times) != len(bins)):
             n = "none" if times is None else len(times)

@@ -1,0 +1,320 @@
+"""The OpenEXR form of a vet file (:class:`~stages.formats.container.Layered`).
+
+Channel ``"{layer}.{channel}"`` (the unnamed layer ``""`` uses bare channel names such
+as ``R, G, B`` so that viewers show it); metadata as the string attributes ``vetKind`` and
+``vetMeta`` (JSON, continued in ``vetMeta0001``... past 900 characters, so that tools
+reading attributes as lines of text take them whole), readable with ``oiiotool --info
+-v`` (files written before use ``vet:kind`` and ``vet:meta``, still read). Compact layers
+(``int16``, ``float16``) are stored as HALF channels, every other one as FLOAT.
+
+Parts. A file whose layers all share one size is a single-part EXR. Layers of another
+size (a capture's measuring images from a measurement camera of its own size) go in
+further parts of a multi-part EXR, one per size (OpenImageIO subimages): part 0,
+named ``main``, holds the main-size layers and the metadata; part 1, named ``measure``
+for measuring images, holds the rest, its data window of their size at the origin and,
+as OpenEXR requires of every part, the display window of part 0.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import FormatError, OutputError
+from . import limits, schema
+from .container import (
+    COMPACT_DTYPES,
+    KIND_ATTR,
+    LEGACY_ATTRS,
+    MAX_CHANNELS,
+    MEASURING_LAYER,
+    META_ATTR,
+    Layered,
+    SizeCheck,
+    channel_name,
+    json_default,
+    parse_meta,
+    split_channel,
+)
+
+#: Rows per EXR write (bounds the float32 staging buffer).
+EXR_WRITE_ROWS = 64
+#: Most parts (subimages) a vet EXR may hold.
+MAX_PARTS = 16
+#: Characters of metadata per EXR string attribute: tools that turn attributes into text
+#: lines of at most 1024 bytes (pfstools' tags) read each one whole.
+META_CHUNK_CHARS = 900
+
+
+def _oiio():
+    import OpenImageIO as oiio
+
+    return oiio
+
+
+def _part_spec(oiio: Any, data: Layered, names: list[str], compression: str) -> Any:
+    """The header of one part: its layers' channels (HALF for compact layers)."""
+    h, w = data.layers[names[0]].shape[:2]
+    channels: list[str] = []
+    formats: list[str] = []
+    for layer in names:
+        arr = data.layers[layer]
+        channels += [channel_name(layer, c) for c in data.channels[layer]]
+        formats += ["half" if arr.dtype in COMPACT_DTYPES else "float"] * arr.shape[2]
+    # (OpenImageIO writes channel formats only where they differ: a part of HALF
+    # channels alone is a HALF image.)
+    spec = oiio.ImageSpec(w, h, len(channels), formats[0] if len(set(formats)) == 1 else "float")
+    spec.channelnames = tuple(channels)
+    if len(set(formats)) > 1:
+        spec.channelformats = tuple(oiio.TypeDesc(f) for f in formats)
+    spec.attribute("compression", compression)
+    return spec
+
+
+def _part_name(k: int, names: list[str]) -> str:
+    if k == 0:
+        return "main"
+    return "measure" if all(MEASURING_LAYER.fullmatch(n) for n in names) else f"part{k}"
+
+
+def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | None = None) -> None:
+    """Write ``data`` as a multi-layer float32 EXR at ``path`` (``what``: its name in
+    messages, when ``path`` is a temporary file); layers of other sizes than the first's
+    in further parts (module docstring). Raises OutputError on failure."""
+    what = what or str(path)
+    oiio = _oiio()
+    parts = data.parts()
+    specs = [_part_spec(oiio, data, names, compression) for names in parts]
+    main = specs[0]
+    main.attribute(KIND_ATTR, str(data.meta.get("kind", "")))
+    text = json.dumps(data.meta, sort_keys=True, default=json_default)
+    for name, chunk in meta_chunks(text):
+        main.attribute(name, chunk)
+    if len(specs) > 1:
+        for k, (spec, names) in enumerate(zip(specs, parts, strict=True)):
+            spec.attribute("oiio:subimagename", _part_name(k, names))
+            # OpenEXR: every part of a file shares the display window.
+            spec.full_x, spec.full_y = main.full_x, main.full_y
+            spec.full_width, spec.full_height = main.full_width, main.full_height
+    out = oiio.ImageOutput.create(str(path))
+    opened = out is not None and (
+        out.open(str(path), specs) if len(specs) > 1 else out.open(str(path), main)
+    )
+    if not opened:
+        raise OutputError(f"{what}: cannot write EXR ({_last_error(oiio.geterror, '?')})")
+    try:
+        for k, (spec, names) in enumerate(zip(specs, parts, strict=True)):
+            if k and not out.open(str(path), spec, "AppendSubimage"):
+                raise OutputError(f"{what}: cannot write EXR ({_last_error(out.geterror, '?')})")
+            _write_part(out, [data.layers[n] for n in names], what)
+    finally:
+        out.close()
+
+
+def _write_part(out: Any, arrays: list[np.ndarray], what: str) -> None:
+    """A band of rows at a time: the float32 staging copy stays small."""
+    h = arrays[0].shape[0]
+    for y0 in range(0, h, EXR_WRITE_ROWS):
+        y1 = min(h, y0 + EXR_WRITE_ROWS)
+        band = np.concatenate([a[y0:y1].astype(np.float32) for a in arrays], axis=2)
+        if not out.write_scanlines(y0, y1, 0, np.ascontiguousarray(band)):
+            raise OutputError(f"{what}: cannot write EXR ({_last_error(out.geterror, '?')})")
+
+
+def meta_chunks(text: str) -> list[tuple[str, str]]:
+    """The metadata JSON as EXR attributes: ``vetMeta`` holds the first
+    :data:`META_CHUNK_CHARS` characters, ``vetMeta0001``, ``vetMeta0002``... the rest."""
+    parts = [text[i : i + META_CHUNK_CHARS] for i in range(0, len(text), META_CHUNK_CHARS)]
+    return [
+        (META_ATTR if i == 0 else f"{META_ATTR}{i:04d}", p) for i, p in enumerate(parts or [""])
+    ]
+
+
+def _joined_meta(spec: Any) -> str:
+    """The metadata JSON of an EXR header: ``vetMeta`` and its continuations, or the
+    single ``vet:meta`` attribute of files written before."""
+    text = spec.get_string_attribute(META_ATTR, "")
+    if not text:
+        return spec.get_string_attribute(LEGACY_ATTRS[META_ATTR], "")
+    parts = [text]
+    for i in range(1, 10**4):
+        part = spec.get_string_attribute(f"{META_ATTR}{i:04d}", "")
+        if not part:
+            break
+        parts.append(part)
+    return "".join(parts)
+
+
+def _last_error(geterror: Callable[[], str], default: str) -> str:
+    """The last line of an OpenImageIO error (which may quote undecodable header bytes)."""
+    try:
+        lines = geterror().strip().splitlines()
+    except UnicodeDecodeError:
+        return "the header holds bytes that are not text"
+    return lines[-1] if lines else default
+
+
+def _open(path: str | Path, what: str) -> Any:
+    oiio = _oiio()
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        msg = _last_error(oiio.geterror, "unknown format")
+        raise FormatError(f"{what}: not a readable image ({msg})")
+    return inp
+
+
+def read_oiio(
+    path: str | Path,
+    what: str,
+    attrs: tuple[str, ...] = (),
+    before_pixels: Callable[[dict[str, str], int, int], None] | None = None,
+    keep_half: bool = False,
+) -> tuple[np.ndarray | list[np.ndarray], list[str], dict[str, str]]:
+    """Read any image OpenImageIO reads at full resolution (subimage 0, MIP level 0;
+    tiles handled by OIIO), checking the header before allocating.
+
+    The header's data window and channel count are checked against
+    :data:`MAX_CHANNELS` and the limits of :mod:`stages.formats.limits` (the
+    pixel bytes it declares against the file's size on disk), and ``before_pixels(attrs,
+    height, width)`` may refuse the file (by raising) before any pixel is read.
+
+    Returns ``(pixels (H, W, C) float32, channel names, {attr: string value})``; with
+    ``keep_half``, ``pixels`` is a list of (H, W) planes, float16 for HALF channels.
+    """
+    inp = _open(path, what)
+    try:
+        head = _Part(inp, 0, what, keep_half)
+        limits.check_declared(head.nbytes, Path(path).stat().st_size, what)
+        values = {a: _attribute(head.spec, a) for a in attrs}
+        if before_pixels is not None:
+            before_pixels(values, head.h, head.w)
+        return head.pixels(inp), head.names, values
+    except UnicodeDecodeError:
+        raise FormatError(f"{what}: header holds names or text that are not UTF-8") from None
+    finally:
+        inp.close()
+
+
+def _attribute(spec: Any, name: str) -> str:
+    return _joined_meta(spec) if name == META_ATTR else spec.get_string_attribute(name, "")
+
+
+class _Part:
+    """One part's header (the current subimage of ``inp``), checked before its pixels."""
+
+    def __init__(self, inp: Any, index: int, what: str, keep_half: bool) -> None:
+        spec = inp.spec()
+        self.index, self.what, self.spec = index, what, spec
+        self.w, self.h, self.nch = int(spec.width), int(spec.height), int(spec.nchannels)
+        where = f" (part {index})" if index else ""
+        if self.w <= 0 or self.h <= 0 or self.nch <= 0:
+            raise FormatError(f"{what}: image{where} has no pixels")
+        if self.nch > MAX_CHANNELS:
+            raise FormatError(
+                f"{what}: image{where} has {self.nch} channels, over the limit of {MAX_CHANNELS}"
+            )
+        kinds = [str(t) for t in spec.channelformats] or [str(spec.format)] * self.nch
+        self.half = [keep_half and k == "half" for k in kinds]
+        self.nbytes = self.w * self.h * sum(2 if hf else 4 for hf in self.half)
+        self.names = list(spec.channelnames)
+
+    def pixels(self, inp: Any) -> np.ndarray | list[np.ndarray]:
+        """``(H, W, C)`` float32, or (any HALF channel kept) a list of ``(H, W)`` planes."""
+        h, w, nch, half = self.h, self.w, self.nch, self.half
+        if not any(half):
+            return self._read(inp, 0, nch, "float").reshape(h, w, nch)
+        planes: list[np.ndarray] = []
+        c0 = 0
+        while c0 < nch:  # runs of channels of one kind, each read in its own type
+            c1 = c0 + 1
+            while c1 < nch and half[c1] == half[c0]:
+                c1 += 1
+            run = self._read(inp, c0, c1, "half" if half[c0] else "float")
+            run = run.reshape(h, w, c1 - c0)
+            planes += [run[:, :, i] for i in range(c1 - c0)]
+            c0 = c1
+        return planes
+
+    def _read(self, inp: Any, c0: int, c1: int, fmt: str) -> np.ndarray:
+        pixels = inp.read_image(self.index, 0, c0, c1, fmt)
+        if pixels is None:
+            msg = _last_error(inp.geterror, "truncated?")
+            where = f" of part {self.index}" if self.index else ""
+            raise FormatError(f"{self.what}: pixel data{where} unreadable ({msg})")
+        return np.asarray(pixels, dtype=np.float16 if fmt == "half" else np.float32)
+
+
+def _parts(inp: Any, what: str) -> list[_Part]:
+    """Every part's header, at most :data:`MAX_PARTS`."""
+    heads = [_Part(inp, 0, what, True)]
+    while inp.seek_subimage(len(heads), 0):
+        if len(heads) == MAX_PARTS:
+            raise FormatError(f"{what}: EXR holds more than {MAX_PARTS} parts")
+        heads.append(_Part(inp, len(heads), what, True))
+    inp.geterror()  # (the failed seek past the last part leaves a message)
+    return heads
+
+
+def read_exr(path: Path, what: str | None = None) -> Layered:
+    """Read a vet EXR, every part of it. Its metadata (size- and depth-limited JSON),
+    the layer sizes it declares (:class:`~stages.formats.container.SizeCheck`) and the
+    pixel bytes of all parts together (:mod:`stages.formats.limits`) are checked before
+    any pixel is read."""
+    what = what or str(path)
+    inp = _open(path, what)
+    try:
+        return _read_exr(inp, path, what)
+    except UnicodeDecodeError:
+        raise FormatError(f"{what}: header holds names or text that are not UTF-8") from None
+    finally:
+        inp.close()
+
+
+def _read_exr(inp: Any, path: str | Path, what: str) -> Layered:
+    heads = _parts(inp, what)
+    nch = sum(p.nch for p in heads)
+    if nch > MAX_CHANNELS:
+        raise FormatError(f"{what}: EXR holds {nch} channels, over the limit of {MAX_CHANNELS}")
+    limits.check_declared(sum(p.nbytes for p in heads), Path(path).stat().st_size, what)
+    meta: dict[str, Any] = {}
+    text = _joined_meta(heads[0].spec)
+    if text:
+        meta.update(parse_meta(text, what))
+        schema.check_meta(meta, what)
+    check = SizeCheck(meta, what)
+    grouped: list[dict[str, list[tuple[str, int]]]] = []
+    seen: set[str] = set()
+    for head in heads:
+        groups: dict[str, list[tuple[str, int]]] = {}
+        for i, name in enumerate(head.names):
+            layer, ch = split_channel(name)
+            if layer in seen:
+                raise FormatError(f"{what}: layer {layer or 'image'!r} is in two parts of the EXR")
+            groups.setdefault(layer, []).append((ch, i))
+        for layer in groups:
+            check(layer, (head.h, head.w))
+        seen.update(groups)
+        grouped.append(groups)
+    data = Layered(meta=meta)
+    order = meta.get("channel_order", {}) if isinstance(meta.get("channel_order"), dict) else {}
+    for head, groups in zip(heads, grouped, strict=True):
+        pixels = head.pixels(inp)
+        for layer, chans in groups.items():
+            wanted = order.get(layer)
+            if (
+                isinstance(wanted, list)
+                and all(isinstance(c, str) for c in wanted)
+                and sorted(wanted) == sorted(c for c, _ in chans)
+            ):
+                idx = dict(chans)
+                chans = [(c, idx[c]) for c in wanted]
+            if isinstance(pixels, list):
+                data.layers[layer] = np.stack([pixels[i] for _, i in chans], axis=2)
+            else:
+                data.layers[layer] = np.ascontiguousarray(pixels[:, :, [i for _, i in chans]])
+            data.channels[layer] = [c for c, _ in chans]
+    return data
