@@ -3,9 +3,10 @@
 A capture holds one measuring image per subframe (``M00`` .. ``M130`` at the defaults)
 and per-image metadata lists (``measure_times``, ``measure_subframes``, their
 ``channel_order``). By default they are summarised: the measuring images as one entry
-(count, time span, statistics over them all), each list by its count and ends. ``full``
-lists every layer and keeps the metadata as stored. Either way, names sort in natural
-order (``M2`` before ``M10`` before ``M100``: time order for measuring images).
+(count, time span, statistics over them all, their size where the measurement camera
+has its own), each list by its count and ends. ``full`` lists every layer and keeps the
+metadata as stored. Either way, names sort in natural order (``M2`` before ``M10``
+before ``M100``: time order for measuring images).
 """
 
 from __future__ import annotations
@@ -135,6 +136,7 @@ def describe(path: str | Path, layers: bool = True, full: bool = False) -> dict[
                 continue
             summary[name or "(image)"] = {
                 "channels": data.channels[name],
+                **_own_size(data.layers[name], (h, w)),
                 **_stats([data.layers[name]]),
             }
         out["layers"] = summary
@@ -157,5 +159,13 @@ def _measuring_entry(data: Any, measuring: list[str]) -> dict[str, Any]:
         entry["times_s"] = [float(ends[0, 0]), float(ends[-1, -1])]
     except (TypeError, ValueError):
         pass
+    entry.update(_own_size(data.layers[measuring[0]], data.shape))
     entry.update(_stats([data.layers[m] for m in measuring]))
     return entry
+
+
+def _own_size(layer: np.ndarray, size: tuple[int, int]) -> dict[str, Any]:
+    """``{"size": ...}`` for a layer of another size than the file's (measuring images
+    from a measurement camera of its own size), else nothing."""
+    h, w = layer.shape[:2]
+    return {} if (h, w) == tuple(size) else {"size": {"width": int(w), "height": int(h)}}

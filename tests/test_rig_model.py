@@ -427,12 +427,11 @@ def test_evaluate_rows_with_and_without_the_rigs_parts(tmp_path):
     assert "rig profile realistic" in (out / "results.md").read_text()
 
 
-def test_a_measurement_camera_of_its_own_size_renders_but_is_refused_in_a_file(tmp_path):
+def test_a_measurement_camera_of_its_own_size_renders_and_is_kept_in_a_file(tmp_path):
     """A 40x30 measurement camera beside a 48x40 VET sensor: simulate renders its frames
-    on its own grid and hdr-static reads them through the mapping; a capture file (one
-    size for every layer) refuses them in one line."""
-    from stages.errors import FormatError
-    from stages.formats import write_capture
+    on its own grid, hdr-static reads them through the mapping, and a capture file keeps
+    them at their size (tests/test_measure_camera_files.py: the layouts, the CLI)."""
+    from stages.formats import read_capture, write_capture
     from stages.hdr_static import hdr_static
 
     hom = [[1.2, 0.0, 0.0], [0.0, 40 / 30, 0.0], [0.0, 0.0, 1.0]]
@@ -441,14 +440,7 @@ def test_a_measurement_camera_of_its_own_size_renders_but_is_refused_in_a_file(t
     assert cap.measure.shape[1:3] == (30, 40)
     img = hdr_static(cap)
     assert np.median(np.abs(np.log2(img.radiance / cap.truth))) < 0.05
-    with pytest.raises(FormatError, match="measure_size must be its sensor_size"):
-        write_capture(str(tmp_path / "c.npz"), cap)
-    f = tmp_path / "rig.toml"
-    f.write_text(
-        "[params]\nmeasure_size = [40, 30]\n"
-        "measure_homography = [[1.2, 0.0, 0.0], [0.0, 1.3333, 0.0], [0.0, 0.0, 1.0]]\n"
-    )
-    r = run_cli(
-        "simulate", "builtin:chart", "--size", "48x40", "--rig-profile", f, "-o", tmp_path / "x.npz"
-    )
-    assert r.exit_code == 1 and "measurement camera is 40x30" in r.output
+    write_capture(str(tmp_path / "c.npz"), cap)
+    back = read_capture(tmp_path / "c.npz")
+    np.testing.assert_array_equal(back.measure, cap.measure)
+    np.testing.assert_array_equal(hdr_static(back).radiance, img.radiance)

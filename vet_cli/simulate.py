@@ -95,14 +95,6 @@ def cli(
     h, w = sc.radiance.shape[:2]
     check_in_frame(mot, (h, w))
     rig = rig_profile(profile, (w, h), **overrides)
-    if rig.measure_shape != (h, w) and measure_bins != 0:
-        from stages.errors import InputError
-
-        raise InputError(
-            f"the rig's measurement camera is {rig.measure_shape[1]}x{rig.measure_shape[0]}, "
-            f"the sensor {w}x{h}: a capture file stores measuring images of the sensor's "
-            "size only (--measure-bins 0 stores none)"
-        )
     log.debug("simulate: %s %dx%d %s, %d subframes", scene, w, h, mot.spec, rig.n_subframes)
     with Progress(f"simulate {method}") as progress:
         caps = simulate(
