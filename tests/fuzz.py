@@ -144,7 +144,7 @@ def mutate_zip(raw: bytes, rng: random.Random) -> bytes:
 
 def mutate_layers(data, rng: random.Random, sizes: bool = True):
     """A copy of a Layered with one layer dropped, poisoned, given other channels or
-    (``sizes``: npz only, EXR layers share one size) cut to another size."""
+    (``sizes``) cut to another size (in an EXR, a part of its own)."""
     data = copy.deepcopy(data)
     name = rng.choice(sorted(data.layers))
     op = rng.randrange(4 if sizes else 3)
@@ -328,6 +328,8 @@ class Campaign:
         from stages.formats.layered import write_layered
 
         # Scenes are images OpenImageIO reads: EXR only.
+        if kind == "capture" and rng.random() < 0.5:
+            kind = "capture_measure"  # a measurement camera of its own size: a 2-part EXR
         data = copy.deepcopy(self.seeds[kind])  # write_layered adds to the metadata
         fmt = "exr" if kind == "scene" else rng.choice(["npz", "exr"])
         path = self.dir / name
@@ -337,7 +339,7 @@ class Campaign:
             data.meta = mutate_meta(data.meta, rng)
             write_layered(target, data)
         elif how == 1:
-            write_layered(target, mutate_layers(data, rng, sizes=fmt == "npz"))
+            write_layered(target, mutate_layers(data, rng))
         else:
             write_layered(target, data)
             raw = target.read_bytes()
@@ -394,6 +396,11 @@ def make_seeds(folder: Path) -> dict:
     rig = RigParams(sensor_size=(32, 24))
     cap = simulate(scene, parse_motion("translate:20,0"), rig, seed=1, measure_bins=4)["vet"]
     cap_layers = cap.to_layered()
+    # A measurement camera of 24x18 pixels imaging the 32x24 VET frame.
+    hom = [[4 / 3, 0.0, 0.0], [0.0, 4 / 3, 0.0], [0.0, 0.0, 1.0]]
+    rig_m = RigParams(sensor_size=(32, 24), measure_size=(24, 18), measure_homography=hom)
+    cap_m = simulate(scene, parse_motion("translate:20,0"), rig_m, seed=1, measure_bins=4)["vet"]
+    cap_m_layers = cap_m.to_layered()
     hdr = hdr_static(cap).to_layered()
     motion = Layered(meta={"kind": "motion", "units": "px/s"})
     motion.add("motion", np.tile(np.float32([3.0, -1.0]), (24, 32, 1)), ["u", "v"])
@@ -420,13 +427,14 @@ def make_seeds(folder: Path) -> dict:
         '[measurement_camera]\nsource = "/dev/video0"\nexposure = 75\n'
         '[vet_camera]\nsource = "/dev/video1"\nexposure = 9997\n'
     )
-    for c in (cap_layers, hdr, motion, cal):
+    for c in (cap_layers, cap_m_layers, hdr, motion, cal):
         c.meta = json.loads(json.dumps(c.meta, default=float))
         chain = c.meta.get("provenance")
         for entry in chain if isinstance(chain, list) else []:  # the same bytes every run
             entry.update(time="2026-01-01T00:00:00+0000", command="vet (fuzz seed)")
     return {
         "capture": cap_layers,
+        "capture_measure": cap_m_layers,
         "hdr": hdr,
         "motion": motion,
         "calibration": cal,

@@ -29,11 +29,12 @@ def test_seeds_pass_every_reader(tmp_path):
     camp = Campaign(tmp_path)
     out = tmp_path / "out"
     out.mkdir()
-    for kind in ("capture", "hdr", "motion", "calibration"):
+    for kind in ("capture", "capture_measure", "hdr", "motion", "calibration"):
         for fmt in ("npz", "exr"):
             path = tmp_path / f"{kind}.{fmt}"
             write_layered(path, camp.seeds[kind])
-            camp.read(kind, path, out, f"seed {path.name}", deblur=True)
+            reader = "capture" if kind == "capture_measure" else kind
+            camp.read(reader, path, out, f"seed {path.name}", deblur=True)
     write_layered(tmp_path / "scene.exr", camp.seeds["scene"])
     camp.read("scene", tmp_path / "scene.exr", out, "seed scene.exr", deblur=True)
     (tmp_path / "rig.toml").write_text(camp.seeds["rig"])
