@@ -232,3 +232,16 @@ def test_layers_of_the_wrong_size_are_refused_before_their_pixels(tmp_path, capt
         with pytest.raises(FormatError, match=message):
             read_capture(path)
         assert message in one_error_line(run_cli("info", path), "info")
+
+
+@pytest.mark.parametrize("ext", ["exr", "npz"])
+def test_non_finite_measuring_images_are_refused_in_one_line(tmp_path, captures, ext):
+    """Found by the fuzzer on this path (and true of every rig): a NaN or infinite
+    measuring pixel reached the fits as numpy warnings. It is refused, as in I."""
+    for value in (np.nan, np.inf, -np.inf):
+        data = _layers(captures[4])
+        data.layers["M01"][3, 5, 0] = value
+        path = tmp_path / f"nan.{ext}"
+        write_layered(path, data)
+        r = run_cli("hdr-static", path, "-o", tmp_path / "h.exr")
+        assert "measuring images hold NaN or infinite values" in one_error_line(r, "hdr-static")

@@ -175,6 +175,10 @@ class Capture:
                 )
             if self.measure_times is None or self.measure_times.shape != (self.measure.shape[0], 2):
                 raise FormatError(f"{what}: measuring images lack their time bins")
+            if self.measure.dtype.kind == "f" and not all(
+                np.isfinite(m).all() for m in self.measure
+            ):
+                raise FormatError(f"{what}: measuring images hold NaN or infinite values")
         if self.truth_layers is not None:
             tt = self.meta.get("truth_trajectory")
             n_layers = len(tt.get("disp", [])) if isinstance(tt, dict) else 0
