@@ -291,6 +291,9 @@ class Campaign:
 
     def run(self, cases_per_kind: int, batch_cases: int = 0) -> None:
         rng = random.Random(self.seed)
+        # The measurement-camera captures draw from a stream of their own, so that the
+        # other cases stay those a seed always gave.
+        measure_rng = random.Random(f"{self.seed}:capture_measure")
         out = self.dir / "out"
         out.mkdir(exist_ok=True)
         for i in range(cases_per_kind):
@@ -301,6 +304,11 @@ class Campaign:
             rig = self.dir / f"rig{i}.toml"
             rig.write_text(mutate_text(self.seeds["rig"], rng), encoding="latin-1")
             self.rig(rig, f"rig case {i}")
+            if i % 2 == 0:  # a capture from a measurement camera of its own size (2-part EXR)
+                path = self.mutant("capture_measure", measure_rng, f"capture_measure{i}")
+                if self.only is None or ("capture_measure", i) == self.only:
+                    case = f"capture_measure case {i} ({path.name})"
+                    self.read("capture", path, out, case, i % 4 == 0)
         for i in range(batch_cases):
             root = self.dir / f"batch{i}"
             root.mkdir()
@@ -328,8 +336,6 @@ class Campaign:
         from stages.formats.layered import write_layered
 
         # Scenes are images OpenImageIO reads: EXR only.
-        if kind == "capture" and rng.random() < 0.5:
-            kind = "capture_measure"  # a measurement camera of its own size: a 2-part EXR
         data = copy.deepcopy(self.seeds[kind])  # write_layered adds to the metadata
         fmt = "exr" if kind == "scene" else rng.choice(["npz", "exr"])
         path = self.dir / name
@@ -339,7 +345,10 @@ class Campaign:
             data.meta = mutate_meta(data.meta, rng)
             write_layered(target, data)
         elif how == 1:
-            write_layered(target, mutate_layers(data, rng))
+            # (Cut to another size: an npz, or the EXR of a measurement camera of its own
+            # size, which has parts of two sizes; other EXR cases keep their old sequence.)
+            sizes = fmt == "npz" or kind == "capture_measure"
+            write_layered(target, mutate_layers(data, rng, sizes=sizes))
         else:
             write_layered(target, data)
             raw = target.read_bytes()
