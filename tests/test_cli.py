@@ -65,7 +65,7 @@ BAD_INPUTS = {
     "random bytes named .exr": (lambda p, cap: _random_exr(p), "not an OpenEXR"),
     "truncated EXR": (_truncated_exr, "EXR"),
     "npz holding a pickled object": (lambda p, cap: _pickled_npz(p), "pickle"),
-    "I and T shapes differ": (_shape_mismatch_npz, "differ"),
+    "I and T shapes differ": (_shape_mismatch_npz, "must match"),
     "NaN in T": (_nan_in_t, "NaN"),
 }
 
