@@ -24,6 +24,25 @@ def sixteen_fit_bins(monkeypatch):
     monkeypatch.setattr(problem, "FIT_BINS_MAX", problem.FIT_BINS)
 
 
+def _shaken_interior():
+    """builtin:interior at 256x192 under shake:4 (seed 0), keeping its stream, and a
+    function giving an image's all-pixel RMS error in stops against its truth."""
+    from stages.metrics import measurable_floor, stops_error
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    scene = load_scene("builtin:interior", (256, 192))
+    rig = RigParams(sensor_size=(256, 192))
+    cap = simulate(scene, parse_motion("shake:4"), rig, seed=0)["vet"]
+    floor = measurable_floor(rig, cap.radiance_scale)
+
+    def rms(img):
+        return stops_error(img, cap.truth, cap.T, rig.frame_s, floor=floor)["all"]["rms"]
+
+    return cap, rms
+
+
 def test_specs_parse_and_round_trip():
     assert parse_motion("shake:3").spec == "shake:3,0"
     assert parse_motion("shake:3,7") == Shake(3.0, 7)
@@ -174,19 +193,11 @@ def test_default_deblur_follows_a_camera_shake():
     from stages.deblur import deblur
     from stages.deblur.layers.paths import tile_paths
     from stages.hdr_static import hdr_static
-    from stages.metrics import measurable_floor, stops_error
     from stages.rig import RigParams
     from stages.scenes import load_scene
     from stages.simulate import simulate
 
-    scene = load_scene("builtin:interior", (256, 192))
-    rig = RigParams(sensor_size=(256, 192))
-    cap = simulate(scene, parse_motion("shake:4"), rig, seed=0)["vet"]
-    floor = measurable_floor(rig, cap.radiance_scale)
-
-    def rms(img):
-        return stops_error(img, cap.truth, cap.T, rig.frame_s, floor=floor)["all"]["rms"]
-
+    cap, rms = _shaken_interior()
     img, _ = deblur(cap)
     assert img.meta["motion_model"] == "layer-paths"
     # The path sampled finely (48 groups of 2-3 subframes) comes within 7% of the oracle
@@ -243,19 +254,8 @@ def test_tiles_follow_the_measured_camera_path():
     would bin from its own crop of the stream."""
     from stages.deblur import deblur
     from stages.hdr_static import hdr_static
-    from stages.metrics import measurable_floor, stops_error
-    from stages.rig import RigParams
-    from stages.scenes import load_scene
-    from stages.simulate import simulate
 
-    scene = load_scene("builtin:interior", (256, 192))
-    rig = RigParams(sensor_size=(256, 192))
-    cap = simulate(scene, parse_motion("shake:4"), rig, seed=0)["vet"]
-    floor = measurable_floor(rig, cap.radiance_scale)
-
-    def rms(img):
-        return stops_error(img, cap.truth, cap.T, rig.frame_s, floor=floor)["all"]["rms"]
-
+    cap, rms = _shaken_interior()
     whole, _ = deblur(cap)
     kept, _ = deblur(cap, tile=96)
     assert kept.meta["motion_model"] == "layer-paths"
