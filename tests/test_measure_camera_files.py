@@ -224,6 +224,10 @@ def test_layers_of_the_wrong_size_are_refused_before_their_pixels(tmp_path, capt
     data.layers["M01"] = np.zeros((40, 48, 1), np.float32)  # the sensor's size: allowed alone
     cases.append((data, "measuring layers have different sizes 40x30, 48x40"))
     data = _layers(captures[4])
+    data.layers["M01"] = np.zeros((24, 36, 1), np.float32)  # a third size: a third part
+    data.layers["M03"] = np.zeros((24, 36, 1), np.float32)  # (named apart from "measure")
+    cases.append((data, "measuring image 'M01' is 36x24 pixels; it must be that or the sensor"))
+    data = _layers(captures[4])
     data.meta["rig"]["measure_size"] = []
     cases.append((data, "rig.sensor_size: 48x40 but layer 'M00' is 40x30 pixels"))
     for i, (data, message) in enumerate(cases):

@@ -75,10 +75,14 @@ def _part_spec(oiio: Any, data: Layered, names: list[str], compression: str) -> 
     return spec
 
 
-def _part_name(k: int, names: list[str]) -> str:
-    if k == 0:
-        return "main"
-    return "measure" if all(MEASURING_LAYER.fullmatch(n) for n in names) else f"part{k}"
+def _part_names(parts: list[list[str]]) -> list[str]:
+    """Each part's name, unique as OpenEXR requires: ``main``, ``measure`` for the first
+    further part of measuring images alone, ``part{k}`` for any other."""
+    out = ["main"]
+    for k, names in enumerate(parts[1:], start=1):
+        measuring = all(MEASURING_LAYER.fullmatch(n) for n in names)
+        out.append("measure" if measuring and "measure" not in out else f"part{k}")
+    return out
 
 
 def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | None = None) -> None:
@@ -95,8 +99,8 @@ def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | N
     for name, chunk in meta_chunks(text):
         main.attribute(name, chunk)
     if len(specs) > 1:
-        for k, (spec, names) in enumerate(zip(specs, parts, strict=True)):
-            spec.attribute("oiio:subimagename", _part_name(k, names))
+        for spec, name in zip(specs, _part_names(parts), strict=True):
+            spec.attribute("oiio:subimagename", name)
             # OpenEXR: every part of a file shares the display window.
             spec.full_x, spec.full_y = main.full_x, main.full_y
             spec.full_width, spec.full_height = main.full_width, main.full_height
