@@ -98,6 +98,11 @@ ISSUE_CASES = {
         "measure_times.1: [0.5, 2.0] s; allowed 0 <= start < end <= frame_s",
     ),
     "unknown method": (_set("method", "magic"), "method: must be 'vet', 'long', 'short'"),
+    # Found by make test-slow's fuzz campaign: a bin's subframe count read as int('').
+    "subframe count not a number": (
+        _set("measure_subframes", [3, 2, "", 2]),
+        "measure_subframes.2: must be a valid integer (got '')",
+    ),
     "channels disagree": (_set("channels", ["Q"]), "channels: ['Q'] but layer 'I' holds"),
     "format version": (_set("format_version", 2), "format_version: must be 1"),
     "kind not a string": (_set("kind", ["capture"]), "kind: must be a string"),

@@ -199,6 +199,14 @@ class CaptureMeta(_FileMeta):
         ]
         | None
     ) = None
+    # Subframes summed in each measuring image (time bins of a stream).
+    measure_subframes: (
+        Annotated[
+            list[Annotated[int, Field(strict=True, ge=0, le=MAX_SUBFRAMES)]],
+            Field(max_length=MAX_SUBFRAMES),
+        ]
+        | None
+    ) = None
     rig_profile: Str | None = None
 
     @model_validator(mode="after")
