@@ -175,6 +175,13 @@ class TruthTrajectory(BaseModel):
         return self
 
 
+#: Whole numbers on the subframe clock, one per subframe at most (indices or counts).
+SubframeCounts = Annotated[
+    list[Annotated[int, Field(strict=True, ge=0, le=MAX_SUBFRAMES)]],
+    Field(max_length=MAX_SUBFRAMES),
+]
+
+
 class CaptureMeta(_FileMeta):
     """A capture's metadata (:mod:`stages.formats.capture`)."""
 
@@ -192,21 +199,9 @@ class CaptureMeta(_FileMeta):
     truth_trajectory: TruthTrajectory | None = None
     # Measuring subframes the rig dropped (indices on the subframe clock; the stream
     # holds the others, each with its own time bin).
-    measure_dropped: (
-        Annotated[
-            list[Annotated[int, Field(strict=True, ge=0, le=MAX_SUBFRAMES)]],
-            Field(max_length=MAX_SUBFRAMES),
-        ]
-        | None
-    ) = None
+    measure_dropped: SubframeCounts | None = None
     # Subframes summed in each measuring image (time bins of a stream).
-    measure_subframes: (
-        Annotated[
-            list[Annotated[int, Field(strict=True, ge=0, le=MAX_SUBFRAMES)]],
-            Field(max_length=MAX_SUBFRAMES),
-        ]
-        | None
-    ) = None
+    measure_subframes: SubframeCounts | None = None
     rig_profile: Str | None = None
 
     @model_validator(mode="after")
