@@ -59,9 +59,10 @@ def work_frames(lum: np.ndarray, noise: np.ndarray, valid: np.ndarray, max_px: i
 
 
 def binned_work_frames(cap: Capture, n_bins: int, max_px: int):
-    """:func:`work_frames` of ``cap``'s stream summed into ``n_bins`` time bins, one bin
-    at full resolution at a time (no full-resolution array of all of them); with the
-    bins' centre times (s)."""
+    """:func:`work_frames` of ``cap``'s stream summed into ``n_bins`` time bins, with the
+    bins' centre times (s). Each bin's rates, noise and validity are made at full
+    resolution one bin at a time and kept at the working scale only (the summed bins are
+    the one full-resolution array of all of them)."""
     from dataclasses import replace
 
     binned = cap.time_bins(n_bins)
