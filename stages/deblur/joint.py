@@ -76,6 +76,7 @@ import scipy.sparse as sp
 from .joint_options import EDGE_REL_MIN, JointOptions
 from .operator import Layers, motion_layers, static_rows
 from .problem import (
+    BIN_STEP_COARSE,
     Observations,
     StackedOperator,
     build_operators,
@@ -461,7 +462,12 @@ def deblur_joint(
         t0 = time.perf_counter()
         if built_for is None or not np.array_equal(built_for, vel) or layers is not built_layers:
             A, Ab = build_operators(
-                obs, vel, step_px=opts.step_px, subframe_s=subframe_s, layers=layers
+                obs,
+                vel,
+                step_px=opts.step_px,
+                step_px_bins=opts.step_px_bins or BIN_STEP_COARSE,
+                subframe_s=subframe_s,
+                layers=layers,
             )
             if obs.stream_src is not None:
                 obs.stream = build_stream(obs.stream_src, vel, layers)

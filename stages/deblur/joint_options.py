@@ -43,6 +43,9 @@ class JointOptions:
     stream_fit: bool = False
     fuse_still: bool | None = None
     step_px: float = 1.0
+    #: Sample spacing (px) of the measuring bins' operators; None: what
+    #: :func:`stages.deblur.deblur` finds for the frame (:func:`stages.deblur.problem.bin_step`).
+    step_px_bins: float | None = None
     levels: int = 1
     coarse_min_px: int = 48
     history: list = field(default_factory=list)

@@ -67,6 +67,12 @@ FIT_BIN_TRAVEL_PX = 0.5
 #: Most fit bins times pixels: the bins' operators and their products grow with both, so
 #: a large frame takes fewer bins (at least :data:`FIT_BINS`).
 FIT_BIN_PIXELS = 1 << 24
+#: Most samples of the bins' operators (per pixel, summed over the bins) times pixels
+#: (:func:`bin_step`).
+FIT_SAMPLE_PIXELS = 1 << 25
+#: Finest and coarsest spacing (px along the motion) of the samples within a fit bin.
+BIN_STEP_FINE = 0.2
+BIN_STEP_COARSE = 1.5
 
 
 def fit_bins(
@@ -91,6 +97,28 @@ def fit_bins(
     n = int(np.ceil(travel / FIT_BIN_TRAVEL_PX)) if np.isfinite(travel) else FIT_BINS_MAX
     most = FIT_BINS_MAX if not pixels else min(FIT_BINS_MAX, FIT_BIN_PIXELS // int(pixels))
     return int(min(max(n, FIT_BINS), max(most, FIT_BINS), max(int(n_subframes) // 2, 1)))
+
+
+def bin_step(max_speed_px_s: float, span_s: float, n_bins: int, pixels: int) -> float:
+    """Spacing (px along the motion) of the samples of each fit bin's operator, for a
+    frame of ``pixels`` (H W) whose fastest motion is ``max_speed_px_s`` over ``span_s``
+    seconds, fitted through ``n_bins`` bins.
+
+    A bin sums its subframes, each the scene at its own position (the simulator samples
+    each at its mid-time); one sample per bin at the bin's mean position is a different
+    blur (bilinear weights do not average linearly over sub-pixel shifts), an error that
+    grows with the travel within a bin and varies with how the bins fall on the
+    subframes. Samples :data:`BIN_STEP_FINE` apart (capped at one per subframe by the
+    operator) make the bins' model the simulator's; that costs about ``travel / step``
+    samples per pixel over all bins besides one per bin, so the spacing is as fine as
+    :data:`FIT_SAMPLE_PIXELS` allows for the frame, and at most :data:`BIN_STEP_COARSE`.
+    """
+    travel = max(float(max_speed_px_s), 0.0) * max(float(span_s), 0.0)
+    if not np.isfinite(travel):
+        return BIN_STEP_COARSE
+    allowed = FIT_SAMPLE_PIXELS / max(int(pixels), 1) - int(n_bins)
+    step = travel / max(allowed, 1.0)
+    return float(min(max(step, BIN_STEP_FINE), BIN_STEP_COARSE))
 
 
 def observations(
