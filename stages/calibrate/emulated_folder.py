@@ -180,6 +180,16 @@ def _move_into(tmp: Path, target: Path) -> None:
         os.replace(p, target / p.name)
 
 
+#: The errors of :func:`compare_parts_to_truth` for the measurement camera's gain and
+#: vignetting and its frame clock.
+MEASURE_ERRORS = (
+    "measure_vignetting_rel_err",
+    "measure_gain_product_rel_err",
+    "trigger_jitter_rel_err",
+    "drop_rate_err",
+)
+
+
 def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, float]:
     """Errors of the parts in ``cal`` against the emulated rig's ``truth``:
     ``mapping_rms_px`` (:func:`.parts.mapping_error_px`), ``trigger_offset_err_s``

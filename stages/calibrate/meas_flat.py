@@ -67,7 +67,8 @@ def fit_vignetting(ratio: np.ndarray) -> dict | None:
     """``P (1 + a r**2) ** -2`` fitted to a measurement-grid (Hm, Wm) ratio (NaN:
     unusable) by least squares (soft L1 beyond three robust sigmas, so a few hot or dead
     pixels do not pull it), from the linear fit of ``ratio ** -1/2 = (1 + a r**2) /
-    sqrt(P)``. Returns ``centre`` (P), ``vignetting`` (a), ``rms_rel`` (the residual's
+    sqrt(P)``; ``a`` below 0 (no falloff in the model) gives ``a = 0`` and ``P`` the
+    median ratio. Returns ``centre`` (P), ``vignetting`` (a), ``rms_rel`` (the residual's
     RMS over P) and ``pixels``; None with fewer than :data:`MIN_PIXELS` usable pixels."""
     from scipy.optimize import least_squares
 
@@ -88,7 +89,9 @@ def fit_vignetting(ratio: np.ndarray) -> dict | None:
     scale = 1.4826 * float(np.median(np.abs(r0 - np.median(r0)))) or 1e-6
     fit = least_squares(resid, p0, loss="soft_l1", f_scale=3 * scale, x_scale=[p0[0], 0.1])
     p, a = float(fit.x[0]), float(fit.x[1])
-    r = resid(fit.x)
+    if a < 0:  # brighter towards the edges: not vignetting; the model's best is a flat gain
+        p, a = float(np.median(y)), 0.0
+    r = resid(np.array([p, a]))
     return {
         "centre": p,
         "vignetting": a,
