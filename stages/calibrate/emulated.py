@@ -167,9 +167,8 @@ def _measure_parts(cal: Calibration, frames: Any, truth: RigParams, seed: int) -
     rate from the frame ids and timestamps the emulated camera gives over
     :data:`.frame_clock.EMULATED_FRAMES` subframes, into ``cal.parts`` with their
     errors against ``truth`` (``provenance["errors_vs_truth"]``)."""
-    from .emulated_folder import MEASURE_ERRORS, compare_parts_to_truth
     from .frame_clock import clock_parts, emulated_timestamps
-    from .meas_flat import flat_rates, measure_flat_parts
+    from .meas_flat import flat_rates, measure_flat_parts, measure_part_errors
 
     info: dict = {}
     if not truth.ideal_geometry:
@@ -187,7 +186,4 @@ def _measure_parts(cal: Calibration, frames: Any, truth: RigParams, seed: int) -
             info["frame_clock"] = got[1]
     if info:
         cal.provenance.setdefault("parts_fit", {}).update(info)
-        errors = compare_parts_to_truth(cal, truth)
-        cal.provenance["errors_vs_truth"].update(
-            {k: v for k, v in errors.items() if k in MEASURE_ERRORS}
-        )
+        cal.provenance["errors_vs_truth"].update(measure_part_errors(cal.parts, truth))

@@ -37,6 +37,7 @@ from .calfile import Calibration
 from .emulated import open_sim_calibration_rig
 from .frame_clock import TIMESTAMPS_FILE, emulated_timestamps, write_timestamps
 from .frames import ProgressFn
+from .meas_flat import measure_part_errors
 from .parts import (
     emulated_switching_frames,
     emulated_target_stack,
@@ -180,26 +181,14 @@ def _move_into(tmp: Path, target: Path) -> None:
         os.replace(p, target / p.name)
 
 
-#: The errors of :func:`compare_parts_to_truth` for the measurement camera's gain and
-#: vignetting and its frame clock.
-MEASURE_ERRORS = (
-    "measure_vignetting_rel_err",
-    "measure_gain_product_rel_err",
-    "trigger_jitter_rel_err",
-    "drop_rate_err",
-)
-
-
 def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, float]:
     """Errors of the parts in ``cal`` against the emulated rig's ``truth``:
     ``mapping_rms_px`` (:func:`.parts.mapping_error_px`), ``trigger_offset_err_s``
     (signed, s), ``switch_rel_err`` and ``relay_blur_rel_err`` (signed, relative), and for the per-pixel leakage map
     against the relay-blurred per-cell truth ``leakage_px_max_rel_err`` and
-    ``leakage_px_rms_rel_err`` (over the pixels where it is finite),
-    ``measure_vignetting_rel_err``, ``measure_gain_product_rel_err`` (of
-    ``measure_fraction * measure_gain``, what a flat field measures) and
-    ``trigger_jitter_rel_err`` (signed, relative), ``drop_rate_err`` (signed, absolute).
-    Parts missing from ``cal`` are left out."""
+    ``leakage_px_rms_rel_err`` (over the pixels where it is finite), and the
+    measurement camera's (:func:`.meas_flat.measure_part_errors`). Parts missing from
+    ``cal`` are left out."""
     from ..optics import pixel_leakage, relay_blur
     from ..physics import CellMap
 
@@ -218,17 +207,7 @@ def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, floa
         out["switch_rel_err"] = p["switch_s"] / truth.switch_s - 1
     if "relay_blur_px" in p and truth.relay_blur_px > 0:
         out["relay_blur_rel_err"] = p["relay_blur_px"] / truth.relay_blur_px - 1
-    if "measure_vignetting" in p and truth.measure_vignetting > 0:
-        out["measure_vignetting_rel_err"] = p["measure_vignetting"] / truth.measure_vignetting - 1
-    if "measure_gain" in p:
-        est = p["measure_gain"] * p.get("measure_fraction", truth.measure_fraction)
-        out["measure_gain_product_rel_err"] = (
-            est / (truth.measure_gain * truth.measure_fraction) - 1
-        )
-    if "trigger_jitter_s" in p and truth.trigger_jitter_s > 0:
-        out["trigger_jitter_rel_err"] = p["trigger_jitter_s"] / truth.trigger_jitter_s - 1
-    if "drop_rate" in p:
-        out["drop_rate_err"] = p["drop_rate"] - truth.drop_rate
+    out.update(measure_part_errors(p, truth))
     if cal.leakage is not None and tuple(cal.sensor_size) == tuple(truth.sensor_size):
         w, h = truth.sensor_size
         true_px = relay_blur(

@@ -7,9 +7,9 @@ timestamp (``ChunkTimestamp`` or the driver's, converted to seconds), as a CSV f
 ``meas_timestamps.csv`` in the folder of recorded frames (:data:`TIMESTAMPS_FILE`)::
 
     frame_id,timestamp_s
-    0,12.0003751
-    1,12.0079549
-    3,12.0231154
+    0,12.50
+    1,12.51
+    3,12.53
     ...
 
 One header line naming the two columns first (further columns are ignored), then one

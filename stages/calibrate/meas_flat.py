@@ -165,3 +165,36 @@ def measure_flat_parts(
         "mapping": "chessboard" if mapping is not None else "identity",
     }
     return parts, info
+
+
+#: The errors of :func:`measure_part_errors`.
+MEASURE_ERRORS = (
+    "measure_vignetting_rel_err",
+    "measure_gain_product_rel_err",
+    "trigger_jitter_rel_err",
+    "drop_rate_err",
+)
+
+
+def measure_part_errors(parts: dict, truth: RigParams) -> dict[str, float]:
+    """Errors of the measurement camera's parts in ``parts`` (RigParams fields) against
+    the emulated ``truth``: ``measure_vignetting_rel_err``,
+    ``measure_gain_product_rel_err`` (of ``measure_fraction * measure_gain``, what a
+    flat field measures), ``trigger_jitter_rel_err`` (signed, relative) and
+    ``drop_rate_err`` (signed, absolute); parts missing (or a truth of 0 for a relative
+    error) are left out."""
+    out: dict[str, float] = {}
+    if "measure_vignetting" in parts and truth.measure_vignetting > 0:
+        out["measure_vignetting_rel_err"] = (
+            parts["measure_vignetting"] / truth.measure_vignetting - 1
+        )
+    if "measure_gain" in parts:
+        est = parts["measure_gain"] * parts.get("measure_fraction", truth.measure_fraction)
+        out["measure_gain_product_rel_err"] = (
+            est / (truth.measure_gain * truth.measure_fraction) - 1
+        )
+    if "trigger_jitter_s" in parts and truth.trigger_jitter_s > 0:
+        out["trigger_jitter_rel_err"] = parts["trigger_jitter_s"] / truth.trigger_jitter_s - 1
+    if "drop_rate" in parts:
+        out["drop_rate_err"] = parts["drop_rate"] - truth.drop_rate
+    return out
