@@ -15,12 +15,12 @@ The modules, each importing only those above it:
 - :mod:`.gray_code`: Gray-code patterns and their per-pixel decoding.
 - :mod:`.geometry`: the cell -> pixel homography (fit, error, example, parsing).
 - :mod:`.sensor_models`: bias and dark current, signal rate, leakage.
-- :mod:`.calfile`: :class:`Calibration`, the calibration file, :func:`apply_calibration`.
-- :mod:`.frames`: :class:`CalibrationFrames` and :func:`calibrate_frames`.
 - :mod:`.frame_clock`: the measurement camera's frame ids and timestamps
   (``meas_timestamps.csv``): trigger jitter and drop rate.
 - :mod:`.meas_flat`: the measurement camera's vignetting and gain from its flat field
   against the VET camera's, through the measurement -> VET mapping.
+- :mod:`.calfile`: :class:`Calibration`, the calibration file, :func:`apply_calibration`.
+- :mod:`.frames`: :class:`CalibrationFrames` and :func:`calibrate_frames`.
 - :mod:`.acquire`: driving a rig through the calibration sequence.
 - :mod:`.parts`: the parts of a real rig (:mod:`stages.optics`): the measurement ->
   VET mapping and distortion from a chessboard both cameras see, the switching time and
