@@ -41,6 +41,11 @@ def test_too_few_frames_or_a_wrong_period_are_logged(caplog):
     parts, info = fc.clock_parts(ids, ids * rig.subframe_s * 1.01, rig)
     assert info["period_rel_err"] == pytest.approx(0.01) and "subframe is" in caplog.text
     assert parts == {"trigger_jitter_s": pytest.approx(0, abs=1e-9), "drop_rate": 0.0}
+    # Ids that run backwards in time, or mostly missing: not a clock, skipped.
+    assert fc.clock_parts(ids, -ids * rig.subframe_s, rig) is None
+    sparse = np.append(ids, 10**17)
+    assert fc.clock_parts(sparse, sparse * rig.subframe_s, rig) is None
+    assert "jitter and drop rate not set" in caplog.text
 
 
 def test_timestamps_file_round_trip_and_limits(tmp_path, monkeypatch):

@@ -46,6 +46,8 @@ MAX_TIMESTAMPS_BYTES = 64 * 2**20
 MIN_FRAMES = 20
 #: Frames the emulated rig records: 0.2% drops is 40 +- 6 missing ids.
 EMULATED_FRAMES = 20000
+#: Largest drop rate taken for one (more ids missing than received: not the clock).
+MAX_DROP_RATE = 0.5
 #: Relative difference of the fitted period from ``subframe_s`` that draws a warning.
 PERIOD_TOLERANCE = 1e-3
 
@@ -162,7 +164,8 @@ def fit_frame_clock(ids: np.ndarray, t: np.ndarray, subframe_s: float) -> dict |
 def clock_parts(ids: np.ndarray, t: np.ndarray, params: RigParams) -> tuple[dict, dict] | None:
     """``(parts, info)`` from a recording (:func:`fit_frame_clock`): the RigParams fields
     ``trigger_jitter_s`` and ``drop_rate``, and the fit's figures for the provenance;
-    None (logged) when it cannot be fitted or the jitter exceeds a subframe."""
+    None (logged) when it cannot be fitted, the period is not positive, more than
+    :data:`MAX_DROP_RATE` of the ids are missing or the jitter exceeds a subframe."""
     fit = fit_frame_clock(ids, t, params.subframe_s)
     if fit is None:
         log.warning(
@@ -170,6 +173,13 @@ def clock_parts(ids: np.ndarray, t: np.ndarray, params: RigParams) -> tuple[dict
             TIMESTAMPS_FILE,
             len(ids),
             MIN_FRAMES,
+        )
+        return None
+    if fit["period_s"] <= 0 or fit["drop_rate"] > MAX_DROP_RATE:
+        log.warning(
+            "calibrate: %s: the timestamps do not rise with the frame ids, or more than "
+            "half the ids are missing; jitter and drop rate not set",
+            TIMESTAMPS_FILE,
         )
         return None
     if abs(fit["period_rel_err"]) > PERIOD_TOLERANCE:

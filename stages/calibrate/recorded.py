@@ -98,8 +98,9 @@ def calibrate_from_folder(
     series, ``relay_blur_px`` from the Gray code, ``measure_vignetting`` and
     ``measure_gain`` (with the configured ``measure_fraction``) from the measurement
     flat field (:mod:`.meas_flat`), ``trigger_jitter_s`` and ``drop_rate`` from
-    ``meas_timestamps.csv`` (:mod:`.frame_clock`). Missing parts are skipped with a warning (``provenance["skipped"]``); a pose
-    whose chessboard is not found in both cameras is left out with a warning.
+    ``meas_timestamps.csv`` (:mod:`.frame_clock`). Missing parts are skipped with a
+    warning (``provenance["skipped"]``); a pose whose chessboard is not found in both
+    cameras is left out with a warning.
 
     Raises
     ------
