@@ -94,6 +94,11 @@ def test_folder_calibration_finds_the_parts_of_the_emulated_rig(calibrated):
         "measure_k2",
         "trigger_offset_s",
         "switch_s",
+        "measure_vignetting",
+        "measure_gain",
+        "measure_fraction",
+        "trigger_jitter_s",
+        "drop_rate",
     }
     assert cal.provenance["skipped"] == []
     fit = cal.provenance["parts_fit"]
@@ -123,6 +128,8 @@ def test_folder_of_the_old_frame_kinds_calibrates_with_the_parts_skipped(recorde
     assert r.exit_code == 0, r.output
     assert "skipped measurement -> VET mapping" in r.output
     assert "skipped trigger offset and switching time" in r.output
+    assert "skipped trigger jitter and drop rate (no meas_timestamps.csv)" in r.output
+    assert "skipped measurement gain and vignetting" in r.output
     cal = c.read_calibration(tmp_path / "cal.npz")
     assert cal.parts == {} and cal.leakage is not None
 
@@ -181,3 +188,79 @@ def test_save_frames_refuses_a_used_folder_without_force(tmp_path):
     assert len(list(d.iterdir())) == n and (d / "notes.txt").read_text() == "keep me\n"
     r = run_cli("calibrate", "--frames", d, "--save-frames", d, "-o", tmp_path / "c.npz")
     assert r.exit_code == 2
+
+
+def test_measurement_gain_vignetting_and_frame_clock_against_the_truth(calibrated, capsys):
+    """The realistic rig's measurement camera (vignetting 0.12, gain 0.96 with a light
+    share of 1, trigger jitter 50 us, drop rate 0.002) from its flat field and its
+    20000 frames' ids and timestamps: vignetting, gain product and jitter within 10%
+    (+0.2%, +0.01%, -0.8% at 320x240, seed 0); the drop rate within three binomial
+    sigmas of 20000 frames (3.2e-4 each), and exactly the ids the emulated camera
+    dropped inside the recorded range."""
+    from stages.calibrate.frame_clock import EMULATED_FRAMES, emulated_timestamps
+    from stages.calibrate.meas_flat import MEASURE_ERRORS
+
+    r, out, truth = calibrated
+    assert r.exit_code == 0, r.output
+    cal = c.read_calibration(out)
+    err = c.compare_parts_to_truth(cal, truth)
+    with capsys.disabled():
+        print("\nerrors vs truth:", {k: round(err[k], 6) for k in MEASURE_ERRORS})
+    assert truth.measure_vignetting == 0.12 and truth.measure_gain == 0.96
+    assert abs(err["measure_vignetting_rel_err"]) <= 0.1
+    assert abs(err["measure_gain_product_rel_err"]) <= 0.1
+    assert abs(err["trigger_jitter_rel_err"]) <= 0.1
+    p, n = truth.drop_rate, EMULATED_FRAMES
+    assert abs(err["drop_rate_err"]) <= 3 * np.sqrt(p * (1 - p) / n)
+    ids, _ = emulated_timestamps(truth, seed=0)
+    fit = cal.provenance["parts_fit"]
+    assert fit["frame_clock"]["missing"] == (ids[-1] - ids[0] + 1) - ids.size
+    assert fit["frame_clock"]["period_rel_err"] == pytest.approx(0, abs=1e-5)
+    assert fit["measure_flat"]["mapping"] == "chessboard"
+    # The flat field gives the product; the configured light share stays.
+    assert cal.parts["measure_fraction"] == 1.0
+    rig = c.apply_calibration(RigParams(sensor_size=SIZE), cal)
+    assert rig.measure_gain == cal.parts["measure_gain"] and rig.measure_fraction == 1.0
+    assert rig.trigger_jitter_s == cal.parts["trigger_jitter_s"]
+    assert rig.drop_rate == cal.parts["drop_rate"]
+    assert rig.measure_vignetting == cal.parts["measure_vignetting"]
+    assert cal.provenance["frames_averaged"]["meas_timestamps"] == ids.size
+    info = run_cli("info", out)
+    meta = json.loads(info.stdout)["metadata"]
+    assert meta["parts"]["drop_rate"] == pytest.approx(cal.parts["drop_rate"])
+    assert meta["parts"]["measure_vignetting"] == pytest.approx(cal.parts["measure_vignetting"])
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("frame_id,timestamp_s\n0,0.0\n1,abc\n", "meas_timestamps.csv:3: '1,abc' is not"),
+        ("id,t\n0,0.0\n", "meas_timestamps.csv:1: header 'id,t'"),
+        ("frame_id,timestamp_s\n0,0.0\n0,0.1\n", "frame id 0 appears more than once"),
+        ("frame_id,timestamp_s\n0,1e999\n", "timestamp '1e999' is not finite"),
+        ("frame_id,timestamp_s\n-1,0.5\n", "meas_timestamps.csv:2: '-1,0.5' is not"),
+        ("", "empty; expected a header"),
+    ],
+)
+def test_malformed_timestamps_file_is_a_one_line_error(recorded, tmp_path, text, message):
+    root, _ = recorded
+    sub = _subset(root, tmp_path / "f", ("open_", "closed_", "rig.toml"))
+    (sub / "meas_timestamps.csv").write_text(text)
+    r = run_cli("calibrate", "--frames", sub, "-o", tmp_path / "cal.npz")
+    assert r.exit_code == 1, r.output
+    errors = [ln for ln in r.output.splitlines() if "error" in ln]
+    assert len(errors) == 1 and message in errors[0], r.output
+    assert "Traceback" not in r.output and not (tmp_path / "cal.npz").exists()
+
+
+def test_timestamps_alone_give_the_frame_clock(recorded, tmp_path):
+    """A folder with the timestamps but no measurement flat field: jitter and drop rate
+    found, the gain and vignetting skipped with a log line."""
+    root, truth = recorded
+    sub = _subset(root, tmp_path / "f", ("open_", "closed_", "rig.toml", "meas_timestamps"))
+    r = run_cli("calibrate", "--frames", sub, "-o", tmp_path / "cal.npz")
+    assert r.exit_code == 0, r.output
+    assert "skipped measurement gain and vignetting" in r.output
+    cal = c.read_calibration(tmp_path / "cal.npz")
+    assert set(cal.parts) == {"trigger_jitter_s", "drop_rate"}
+    assert cal.parts["trigger_jitter_s"] == pytest.approx(truth.trigger_jitter_s, rel=0.1)

@@ -15,6 +15,8 @@ LAYERS = (
     "gray_code",
     "geometry",
     "sensor_models",
+    "frame_clock",
+    "meas_flat",
     "calfile",
     "frames",
     "acquire",

@@ -80,8 +80,10 @@ def test_leakage_map_per_pixel_and_per_cell():
 
 def test_vet_calibrate_finds_the_parts_of_the_emulated_realistic_rig(tmp_path):
     """vet calibrate --rig sim --size 160x120 --rig-profile realistic: the mapping within
-    0.1 px RMS, the trigger offset within 0.1 ms, the switching time within 10%; the
-    calibration file keeps them, and capture --calibration takes them."""
+    0.1 px RMS, the trigger offset within 0.1 ms, the switching time within 10%, the
+    measurement camera's vignetting, gain and trigger jitter within 10% and its drop
+    rate within three binomial sigmas of 20000 frames; the calibration file keeps
+    them, and capture --calibration takes them."""
     from stages.calibrate import calibration_changes, read_calibration
     from tests.test_rig_model import run_cli
 
@@ -95,6 +97,10 @@ def test_vet_calibrate_finds_the_parts_of_the_emulated_realistic_rig(tmp_path):
     assert err["mapping_rms_px"] <= 0.1
     assert abs(err["trigger_offset_err_s"]) <= 1e-4
     assert abs(err["switch_rel_err"]) <= 0.1
+    for k in ("measure_vignetting_rel_err", "measure_gain_product_rel_err"):
+        assert abs(err[k]) <= 0.1, k
+    assert abs(err["trigger_jitter_rel_err"]) <= 0.1
+    assert abs(err["drop_rate_err"]) <= 3 * np.sqrt(0.002 * 0.998 / 20000)
     changes = calibration_changes(cal)
     assert set(cal.parts) == {
         "measure_homography",
@@ -102,7 +108,13 @@ def test_vet_calibrate_finds_the_parts_of_the_emulated_realistic_rig(tmp_path):
         "measure_k2",
         "trigger_offset_s",
         "switch_s",
+        "measure_vignetting",
+        "measure_gain",
+        "measure_fraction",
+        "trigger_jitter_s",
+        "drop_rate",
     }
+    assert cal.provenance["parts_fit"]["measure_flat"]["mapping"] == "chessboard"
     assert all(changes[k] == v for k, v in cal.parts.items())
 
 

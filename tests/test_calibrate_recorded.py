@@ -76,9 +76,16 @@ def test_calibrate_from_folder(tmp_path):
     assert [s.split(" (")[0] for s in cal.provenance["skipped"]] == [
         "measurement -> VET mapping",
         "trigger offset and switching time",
+        "trigger jitter and drop rate",
     ]
-    # The Gray-code edges of this folder are sharp: no relay blur.
-    assert set(cal.parts) == {"relay_blur_px"} and cal.parts["relay_blur_px"] < 0.2
+    # The Gray-code edges of this folder are sharp: no relay blur. Its measurement flat
+    # field is flat: no vignetting, and the gain ratio (one grid assumed, no chessboard)
+    # goes into the gain with the configured light share of 1.
+    assert cal.parts["relay_blur_px"] < 0.2
+    assert cal.parts["measure_vignetting"] == pytest.approx(0, abs=1e-3)
+    assert cal.parts["measure_gain"] == pytest.approx(truth["meas"], rel=0.05)
+    assert cal.parts["measure_fraction"] == 1.0
+    assert cal.provenance["parts_fit"]["measure_flat"]["mapping"] == "identity"
 
 
 def test_calibrate_from_folder_skips_missing_parts(tmp_path, caplog):

@@ -27,8 +27,11 @@ With --rig sim the emulated rig images a flat field; --true-homography, --leakag
 against it are logged and stored. With --frames FOLDER the frames come from files
 (PNG, TIFF, or camera raws through rawpy; names in docs/calibration.md), including a
 chessboard both cameras see and a switching series, from which the measurement
-camera's mapping, the trigger offset and the switching time are found. --save-frames
-DIR records the emulated rig's frames into DIR in that layout and calibrates from it.
+camera's mapping, the trigger offset and the switching time are found, the
+measurement camera's gain and vignetting (its flat field through that mapping), and
+the trigger jitter and drop rate (meas_timestamps.csv: frame_id,timestamp_s per frame
+the measurement camera gave on the subframe clock). --save-frames DIR records the
+emulated rig's frames into DIR in that layout and calibrates from it.
 
 \b
 Example:

@@ -15,6 +15,10 @@ The modules, each importing only those above it:
 - :mod:`.gray_code`: Gray-code patterns and their per-pixel decoding.
 - :mod:`.geometry`: the cell -> pixel homography (fit, error, example, parsing).
 - :mod:`.sensor_models`: bias and dark current, signal rate, leakage.
+- :mod:`.frame_clock`: the measurement camera's frame ids and timestamps
+  (``meas_timestamps.csv``): trigger jitter and drop rate.
+- :mod:`.meas_flat`: the measurement camera's vignetting and gain from its flat field
+  against the VET camera's, through the measurement -> VET mapping.
 - :mod:`.calfile`: :class:`Calibration`, the calibration file, :func:`apply_calibration`.
 - :mod:`.frames`: :class:`CalibrationFrames` and :func:`calibrate_frames`.
 - :mod:`.acquire`: driving a rig through the calibration sequence.
@@ -23,8 +27,8 @@ The modules, each importing only those above it:
   trigger offset from closures at a known subframe, the leakage map per pixel and per
   cell (``python -m stages.calibrate.parts``; the emulated rig's mapping, trigger
   offset and switching time in ``vet calibrate --rig sim --rig-profile``).
-- :mod:`.recorded_parts`: those parts fitted from a folder's chessboard poses and
-  switching series.
+- :mod:`.recorded_parts`: those parts fitted from a folder's chessboard poses,
+  switching series, Gray code, measurement flat field and timestamps.
 - :mod:`.recorded`: reading a folder of recorded frames or camera raws.
 - :mod:`.emulated`: the emulated rig and the errors against its truth.
 - :mod:`.emulated_folder`: the emulated rig's frames written as such a folder

@@ -273,6 +273,13 @@ def calibrate_rig(
     -------
     Calibration
     """
+    return calibrate_rig_frames(rig, progress, settings)[0]
+
+
+def calibrate_rig_frames(
+    rig: Any, progress: ProgressFn | None = None, settings: AcquisitionSettings | None = None
+) -> tuple[Calibration, CalibrationFrames]:
+    """:func:`calibrate_rig` and the averaged frames it was computed from."""
     t0 = time.monotonic()
     s = settings or AcquisitionSettings()
     frames = acquire_frames(rig, s, progress)
@@ -290,4 +297,4 @@ def calibrate_rig(
     }
     cal = calibrate_frames(frames, rig.params, prov)
     cal.provenance["elapsed_s"] = round(time.monotonic() - t0, 3)
-    return cal
+    return cal, frames

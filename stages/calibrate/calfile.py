@@ -52,7 +52,9 @@ class Calibration:
     parts : dict
         The parts of a real rig found (:mod:`.parts`): RigParams fields such as
         ``measure_homography``, ``measure_k1``, ``measure_k2``, ``trigger_offset_s``,
-        ``switch_s``.
+        ``switch_s``, ``relay_blur_px``, ``measure_vignetting``, ``measure_gain`` with
+        ``measure_fraction`` (their product is what a flat field measures:
+        :mod:`.meas_flat`), ``trigger_jitter_s``, ``drop_rate``.
     provenance : dict
         Source (rig or folder), settings, frames used, skipped parts, software.
     """
@@ -166,7 +168,10 @@ def read_calibration(path: str | Path) -> Calibration:
 
 
 def apply_calibration(params: RigParams, cal: Calibration) -> RigParams:
-    """Rig parameters with the calibrated homography, leakage, dark current and gain ratio.
+    """Rig parameters with the calibrated homography, leakage, dark current and gain ratio,
+    and the parts of a real rig found (``cal.parts``, which take precedence: with the
+    measurement camera's gain and vignetting fitted, ``measure_fraction`` is the one in
+    ``parts``, not the gain ratio's median, which holds the gain and vignetting too).
 
     Parameters
     ----------

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..rig import RigParams
-from .acquire import AcquisitionSettings, calibrate_rig
+from .acquire import AcquisitionSettings, calibrate_rig_frames
 from .calfile import Calibration
 from .frames import ProgressFn
 from .geometry import homography_error_px
@@ -140,7 +140,7 @@ def calibrate_sim(
     Calibration
     """
     with open_sim_calibration_rig(size, overrides, true_homography, seed, scene, profile) as rig:
-        cal = calibrate_rig(rig, progress, settings)
+        cal, frames = calibrate_rig_frames(rig, progress, settings)
         p = rig.params
         true_h = np.asarray(p.homography if true_homography is None else true_homography, float)
     cal.provenance["emulated_truth"] = {
@@ -156,5 +156,34 @@ def calibrate_sim(
         from .parts import calibrate_parts
 
         cal.parts, errors = calibrate_parts(p, seed)
+        _measure_parts(cal, frames, p, seed)
         cal.provenance["errors_vs_truth"].update(errors)
     return cal
+
+
+def _measure_parts(cal: Calibration, frames: Any, truth: RigParams, seed: int) -> None:
+    """The measurement camera's gain and vignetting from the flat fields just acquired
+    (through the mapping in ``cal.parts``, when found), and the trigger jitter and drop
+    rate from the frame ids and timestamps the emulated camera gives over
+    :data:`.frame_clock.EMULATED_FRAMES` subframes, into ``cal.parts`` with their
+    errors against ``truth`` (``provenance["errors_vs_truth"]``)."""
+    from .frame_clock import clock_parts, emulated_timestamps
+    from .meas_flat import flat_rates, measure_flat_parts, measure_part_errors
+
+    info: dict = {}
+    if not truth.ideal_geometry:
+        dark = None if cal.dark_current_e_s is None else cal.dark_current_e_s * truth.gain_dn_per_e
+        rates = flat_rates(frames.meas_flat, frames.meas_dark, frames.open, cal.bias_dn, dark)
+        mapping = cal.parts if "measure_homography" in cal.parts else None
+        got = None if rates is None else measure_flat_parts(*rates, truth, mapping)
+        if got is not None:
+            cal.parts.update(got[0])
+            info["measure_flat"] = got[1]
+    if truth.trigger_jitter_s > 0 or truth.drop_rate > 0:
+        got = clock_parts(*emulated_timestamps(truth, seed=seed), truth)
+        if got is not None:
+            cal.parts.update(got[0])
+            info["frame_clock"] = got[1]
+    if info:
+        cal.provenance.setdefault("parts_fit", {}).update(info)
+        cal.provenance["errors_vs_truth"].update(measure_part_errors(cal.parts, truth))

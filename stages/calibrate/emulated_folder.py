@@ -12,7 +12,11 @@ bias measures):
   cameras, and ``[calibration] chessboard`` in ``rig.toml``;
 - the switching series (:func:`.parts.emulated_switching_frames`): every cell applied
   closed at subframe :data:`SWITCH_SUBFRAME`, windows 0.25 ms apart from 2 ms before
-  its nominal time to 5 ms after, :data:`SWITCH_FRAMES` frames each.
+  its nominal time to 5 ms after, :data:`SWITCH_FRAMES` frames each;
+- the measurement camera's frame ids and timestamps over
+  :data:`.frame_clock.EMULATED_FRAMES` subframes of its clock
+  (:func:`.frame_clock.emulated_timestamps`: the rig's jitter and drops) as
+  ``meas_timestamps.csv``.
 """
 
 from __future__ import annotations
@@ -31,7 +35,9 @@ from ..rig import RigParams
 from .acquire import AcquisitionSettings, acquire_frames
 from .calfile import Calibration
 from .emulated import open_sim_calibration_rig
+from .frame_clock import TIMESTAMPS_FILE, emulated_timestamps, write_timestamps
 from .frames import ProgressFn
+from .meas_flat import measure_part_errors
 from .parts import (
     emulated_switching_frames,
     emulated_target_stack,
@@ -149,6 +155,8 @@ def _record(
     for k, (w, dn) in enumerate(zip(reps, frames, strict=True)):
         save(f"switch_{c}_{w:.9g}s_{k % SWITCH_FRAMES:02d}", dn, rig)
 
+    write_timestamps(root / TIMESTAMPS_FILE, *emulated_timestamps(rig, seed=seed))
+
     d = rig.to_dict()
     lines = ["# the emulated rig's settings (its parts are what calibration finds)", "[params]"]
     for key in _PARAMS:
@@ -166,7 +174,8 @@ def _move_into(tmp: Path, target: Path) -> None:
         os.replace(tmp, target)
         return
     for p in target.iterdir():
-        if p.is_file() and (p.name == "rig.toml" or any(r.match(p.stem) for r in LAYOUT)):
+        named = p.name in ("rig.toml", TIMESTAMPS_FILE)
+        if p.is_file() and (named or any(r.match(p.stem) for r in LAYOUT)):
             p.unlink()
     for p in tmp.iterdir():
         os.replace(p, target / p.name)
@@ -177,7 +186,8 @@ def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, floa
     ``mapping_rms_px`` (:func:`.parts.mapping_error_px`), ``trigger_offset_err_s``
     (signed, s), ``switch_rel_err`` and ``relay_blur_rel_err`` (signed, relative), and for the per-pixel leakage map
     against the relay-blurred per-cell truth ``leakage_px_max_rel_err`` and
-    ``leakage_px_rms_rel_err`` (over the pixels where it is finite). Parts missing from
+    ``leakage_px_rms_rel_err`` (over the pixels where it is finite), and the
+    measurement camera's (:func:`.meas_flat.measure_part_errors`). Parts missing from
     ``cal`` are left out."""
     from ..optics import pixel_leakage, relay_blur
     from ..physics import CellMap
@@ -197,6 +207,7 @@ def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, floa
         out["switch_rel_err"] = p["switch_s"] / truth.switch_s - 1
     if "relay_blur_px" in p and truth.relay_blur_px > 0:
         out["relay_blur_rel_err"] = p["relay_blur_px"] / truth.relay_blur_px - 1
+    out.update(measure_part_errors(p, truth))
     if cal.leakage is not None and tuple(cal.sensor_size) == tuple(truth.sensor_size):
         w, h = truth.sensor_size
         true_px = relay_blur(

@@ -80,6 +80,8 @@ def calibrate_from_folder(
         switch_<C>_<W>s_<NN>  VET camera, flat field, every cell applied closed at
                               subframe C (as the LCoS acknowledges it), exposure window
                               W seconds from the trigger; W stepped across the closure
+        meas_timestamps.csv   measurement camera on the subframe clock: frame_id,
+                              timestamp_s per frame received (:mod:`.frame_clock`)
 
     e.g. ``dark_0.5s_00.tif``, ``gray_07.png``, ``target_vet_00_03.png``,
     ``switch_20_0.1511s_00.png``. An optional ``rig.toml`` in the folder with a
@@ -93,14 +95,19 @@ def calibrate_from_folder(
     closed frames, the gain ratio) and the parts of a real rig into ``Calibration.parts``
     (:mod:`.recorded_parts`): ``measure_homography``, ``measure_k1``, ``measure_k2``
     from the chessboard poses, ``trigger_offset_s`` and ``switch_s`` from the switching
-    series. Missing parts are skipped with a warning (``provenance["skipped"]``); a pose
-    whose chessboard is not found in both cameras is left out with a warning.
+    series, ``relay_blur_px`` from the Gray code, ``measure_vignetting`` and
+    ``measure_gain`` (with the configured ``measure_fraction``) from the measurement
+    flat field (:mod:`.meas_flat`), ``trigger_jitter_s`` and ``drop_rate`` from
+    ``meas_timestamps.csv`` (:mod:`.frame_clock`). Missing parts are skipped with a
+    warning (``provenance["skipped"]``); a pose whose chessboard is not found in both
+    cameras is left out with a warning.
 
     Raises
     ------
     InputError
         Not a folder, no usable frame, frames of different sizes, or an incomplete set
-        of Gray-code patterns with nothing else usable.
+        of Gray-code patterns with nothing else usable; a malformed
+        ``meas_timestamps.csv`` (:class:`~stages.errors.FormatError`).
     """
     root = Path(folder)
     if not root.is_dir():
@@ -109,6 +116,10 @@ def calibrate_from_folder(
     if params is None:
         params = _folder_params(root, table)
     pattern = _chessboard(table, root)
+    from .frame_clock import TIMESTAMPS_FILE, read_timestamps
+
+    stamps = root / TIMESTAMPS_FILE
+    clock = read_timestamps(stamps) if stamps.is_file() else None  # a bad file fails first
     timed: dict[str, dict[float, list[Path]]] = {}
     gray: dict[int, list[Path]] = {}
     targets: dict[str, dict[str, list[Path]]] = {}
@@ -176,7 +187,8 @@ def calibrate_from_folder(
             if t <= 0:
                 log.warning("calibrate: ignoring %s frames with exposure %g s", kind, t)
                 continue
-            getattr(frames, kind)[t] = mean_of(paths)
+            cam = meas_shape if kind.startswith("meas") else shape
+            getattr(frames, kind)[t] = mean_of(paths, cam)
             frames.counts[f"{kind}_{t:g}s"] = len(paths)
     if gray:
         nx, ny = gray_bit_counts(params.lcos_cells)
@@ -195,7 +207,7 @@ def calibrate_from_folder(
                 mean_of(gray[k]) - mean_of(gray[k + 1]) for k in range(0, needed, 2)
             ]
             frames.counts["gray"] = min(len(v) for v in gray.values())
-    if frames.shape() is None:
+    if frames.shape() is None or not shape:
         raise InputError(f"{root}: no usable calibration frames (see the warnings above)")
     if params.sensor_size != (shape[0][1], shape[0][0]):
         log.info(
@@ -224,7 +236,9 @@ def calibrate_from_folder(
     }
     from .recorded_parts import fit_folder_parts
 
-    fit_folder_parts(cal, params, poses, switch_means, pattern, frames.gray_diffs)
+    if clock is not None:
+        cal.provenance["frames_averaged"]["meas_timestamps"] = len(clock[0])
+    fit_folder_parts(cal, params, poses, switch_means, pattern, frames.gray_diffs, frames, clock)
     return cal
 
 

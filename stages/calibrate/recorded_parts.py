@@ -16,7 +16,14 @@ Called by :func:`.recorded.calibrate_from_folder` once the flat-field calibratio
   ``C tau``) and ``switch_s``;
 - **Gray-code frames**: the first column bit's and the first row bit's pattern minus
   inverse each hold one edge of the LCoS image, whose width is the relay blur
-  (:func:`.parts.fit_edge_blur`): ``relay_blur_px``.
+  (:func:`.parts.fit_edge_blur`): ``relay_blur_px``;
+- **measurement flat field** (``meas_flat_*`` against ``open_*``, dark-subtracted): the
+  measurement camera's vignetting and gain through the fitted mapping
+  (:func:`.meas_flat.measure_flat_parts`): ``measure_vignetting``, ``measure_gain``,
+  ``measure_fraction``;
+- **frame ids and timestamps** (``meas_timestamps.csv``): the trigger's jitter and the
+  dropped frames (:func:`.frame_clock.clock_parts`): ``trigger_jitter_s``,
+  ``drop_rate``.
 
 The per-pixel leakage needs nothing here: it is the calibration's ``leakage`` map
 (all-closed over all-open rates, :func:`.sensor_models.leakage_map`).
@@ -31,6 +38,7 @@ import numpy as np
 
 from ..rig import RigParams
 from .calfile import Calibration
+from .frames import CalibrationFrames
 from .gray_code import gray_bit_counts
 from .parts import find_corners, fit_edge_blur, fit_measure_mapping, fit_switching_scaled
 
@@ -170,12 +178,16 @@ def fit_folder_parts(
     switch_means: dict[int, dict[float, np.ndarray]],
     pattern: tuple[int, int] | None,
     gray_diffs: list[np.ndarray] | None = None,
+    frames: CalibrationFrames | None = None,
+    clock: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """Fit the parts the folder's frames allow into ``cal`` (in place): ``cal.parts``
     (RigParams fields), ``cal.provenance["parts_fit"]`` (what each fit used and its
     residual), and a warning plus a ``provenance["skipped"]`` entry for each part
     missing. ``switch_means``: ``{c: {W: mean frame (H, W) DN}}``; ``gray_diffs``: the
-    Gray-code differences of :class:`.frames.CalibrationFrames`."""
+    Gray-code differences of :class:`.frames.CalibrationFrames`; ``frames``: those
+    frames (the flat fields); ``clock``: the measurement camera's frame ids and
+    timestamps (:func:`.frame_clock.read_timestamps`)."""
     skipped = cal.provenance.setdefault("skipped", [])
     info: dict = {}
 
@@ -183,6 +195,7 @@ def fit_folder_parts(
         skipped.append(what)
         log.warning("calibrate: skipped %s", what)
 
+    mapping = None
     if poses:
         fit, notes = fit_mapping_from_poses(poses, pattern)
         for n in notes:
@@ -199,6 +212,7 @@ def fit_folder_parts(
             info["mapping"] = {
                 k: fit[k] for k in ("rms_px", "poses", "corners", "pattern", "measure_shape")
             }
+            mapping = fit
     else:
         skip("measurement -> VET mapping (no target_vet_PP / target_meas_PP frames)")
 
@@ -227,6 +241,19 @@ def fit_folder_parts(
             skip("relay blur (no clean edge in the first Gray-code bits)")
     else:
         skip("relay blur (no Gray-code frames)")
+
+    _measure_flat(cal, params, frames, mapping, info, skip)
+    if clock is None:
+        skip("trigger jitter and drop rate (no meas_timestamps.csv)")
+    else:
+        from .frame_clock import clock_parts
+
+        got = clock_parts(*clock, params)
+        if got is None:
+            skip("trigger jitter and drop rate (meas_timestamps.csv not usable)")
+        else:
+            cal.parts.update(got[0])
+            info["frame_clock"] = got[1]
     if info:
         cal.provenance["parts_fit"] = info
 
@@ -264,3 +291,29 @@ def _switching(
     if out is not None:
         out["leakage_mean"] = leakage
     return out
+
+
+def _measure_flat(
+    cal: Calibration,
+    params: RigParams,
+    frames: CalibrationFrames | None,
+    mapping: dict | None,
+    info: dict,
+    skip: Callable[[str], None],
+) -> None:
+    """The measurement camera's gain and vignetting into ``cal.parts`` (or skipped)."""
+    from .meas_flat import flat_rates, measure_flat_parts
+
+    rates = None
+    if frames is not None:
+        dark = None if cal.dark_current_e_s is None else cal.dark_current_e_s * params.gain_dn_per_e
+        rates = flat_rates(frames.meas_flat, frames.meas_dark, frames.open, cal.bias_dn, dark)
+    if rates is None:
+        skip("measurement gain and vignetting (need meas_flat_* and open_* frames)")
+        return
+    got = measure_flat_parts(*rates, params, mapping)
+    if got is None:
+        skip("measurement gain and vignetting (no usable fit)")
+        return
+    cal.parts.update(got[0])
+    info["measure_flat"] = got[1]
