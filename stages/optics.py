@@ -192,12 +192,17 @@ def vet_to_measure(rig: RigParams) -> tuple[np.ndarray, np.ndarray]:
     return distort(ux, uy, rig.measure_shape, rig.measure_k1, rig.measure_k2)
 
 
-def vignetting(rig: RigParams) -> np.ndarray:
-    """Relative illumination of the measurement camera, (Hm, Wm) float32, 1 at the centre."""
-    shape = rig.measure_shape
+def radius2(shape: tuple[int, int]) -> np.ndarray:
+    """Squared radius of each pixel centre of an (H, W) image from the image's centre, in
+    half-diagonals (the vignetting's and the distortion's radius): (H, W) float64."""
     cx, cy, r0 = _centre_norm(shape)
     yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64) + 0.5
-    r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / (r0 * r0)
+    return ((xx - cx) ** 2 + (yy - cy) ** 2) / (r0 * r0)
+
+
+def vignetting(rig: RigParams) -> np.ndarray:
+    """Relative illumination of the measurement camera, (Hm, Wm) float32, 1 at the centre."""
+    r2 = radius2(rig.measure_shape)
     return (1.0 / (1.0 + rig.measure_vignetting * r2) ** 2).astype(np.float32)
 
 

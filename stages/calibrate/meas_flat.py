@@ -24,6 +24,7 @@ import logging
 
 import numpy as np
 
+from ..optics import radius2
 from ..rig import RigParams
 from .sensor_models import signal_rate
 
@@ -31,15 +32,6 @@ log = logging.getLogger("vet.calibrate")
 
 #: Fewest measurement pixels a vignetting fit needs.
 MIN_PIXELS = 100
-
-
-def radius2(shape: tuple[int, int]) -> np.ndarray:
-    """Squared radius of each pixel centre of an (H, W) image from its centre, in
-    half-diagonals (as :func:`stages.optics.vignetting`): (H, W) float64."""
-    h, w = shape
-    cx, cy, r0 = w / 2.0, h / 2.0, np.hypot(w, h) / 2.0
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
-    return ((xx - cx) ** 2 + (yy - cy) ** 2) / (r0 * r0)
 
 
 def rate_ratio(meas_rate: np.ndarray, open_rate: np.ndarray, rig: RigParams) -> np.ndarray:
