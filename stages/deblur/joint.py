@@ -542,9 +542,11 @@ def deblur_joint(
             if S is not None:
                 ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
             if refine_path:
-                from .path_steps import path_step
+                from .path_steps import anchor_image, path_step
 
-                layers = path_step(obs, L, layers, r, w, rb, wb, frame_s)
+                layers, d0 = path_step(obs, L, layers, r, w, rb, wb, frame_s)
+                if np.any(d0 != 0):  # (the residuals are the model's: it is unchanged)
+                    L = anchor_image(L, (h, wd, c), d0)
                 vel = layers.velocity[layers.label].astype(np.float32)
             elif opts.affine_motion and layers is None:
                 from .affine import affine_step

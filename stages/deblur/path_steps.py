@@ -13,6 +13,15 @@ frames) and over each measuring bin's, whose samples touch only the knots about 
 bin. The step is a plain (damped) Gauss-Newton step: the knots' many parameters,
 each fitted from a short stretch of the data, do not take the affine motion's scaled
 steps (:func:`stages.deblur.motion_steps.scaled_step`), which overshoot here.
+
+**The anchor.** The image is the scene at t = 0, so ``D(0) = 0``; but moving every later
+knot by ``c`` and the image by ``c`` changes only the model of the samples before the
+first knot after 0, so the alternation of image and path steps leaves such an offset
+where the path's first estimate put it (the registration's extrapolation to t = 0, a
+few hundredths of a pixel to a tenth). The step therefore frees ``D(0)`` too, fitted to
+the early samples with the image held under a prior of :data:`ANCHOR_PX` (the early
+samples may be few: a long first bin), and moves the path and the image back by what
+it found (:func:`anchor_image`): the same model, now with ``D(0) = 0``.
 """
 
 from __future__ import annotations
@@ -33,6 +42,11 @@ SAMPLES_PER_KNOT = 2
 #: Tikhonov weight on the knots' second differences, relative to the normal matrix's
 #: mean diagonal (a path is smooth on the scale of its knots).
 SMOOTH_REL = 1e-3
+
+
+#: How far (px) the registered path's anchor ``D(0)`` may be from the truth, a priori:
+#: the spread of the start's extrapolation (module docstring, "The anchor").
+ANCHOR_PX = 0.05
 
 
 def single_path(layers: Layers | None) -> bool:
@@ -91,11 +105,13 @@ def path_step(
     rb: np.ndarray | None,
     wb: np.ndarray | None,
     frame_s: float,
-) -> Layers:
-    """One scaled Gauss-Newton step on the knots of a single layer's trajectory.
+) -> tuple[Layers, np.ndarray]:
+    """One Gauss-Newton step on the knots of a single layer's trajectory, ``D(0)`` included.
 
     ``L`` (H W, C) electrons/s, ``r``/``w`` the VET residual and weights (H W, C), ``rb``/
-    ``wb`` the bins' (B H W, C) or None. Returns new :class:`Layers` with the refined trajectory.
+    ``wb`` the bins' (B H W, C) or None. Returns new :class:`Layers` with the refined
+    trajectory, moved so that ``D(0) = 0``, and what it was moved by (2,) px: the image
+    moves by as much (:func:`anchor_image`) for the model to stay the same.
     """
     from .motion_steps import scaled_step
 
@@ -105,7 +121,7 @@ def path_step(
     knots = np.asarray(knots, np.float64)
     path = np.asarray(disp, np.float64)[0]  # (K, 2)
     k = len(knots)
-    free = knots > 1e-9  # D(0) = 0 stays
+    free = np.ones(k, bool)  # D(0) too: the anchor (module docstring)
     stride = max(1, int(np.ceil(np.sqrt(h * wd * c / MAX_ROWS))))
     sub = (slice(None, None, stride), slice(None, None, stride))
     normal = np.zeros((2 * k, 2 * k))
@@ -132,6 +148,7 @@ def path_step(
         normal[np.ix_(idx, idx)] += (flat * ww) @ flat.T
         grad[idx] += flat @ (ww * res[sub].reshape(-1).astype(np.float32))
 
+    knot_dt = float(np.median(np.diff(knots))) if k > 1 else frame_s
     n_samples = max(2, SAMPLES_PER_KNOT * (k - 1))
     dt = frame_s / n_samples
     times = (np.arange(n_samples) + 0.5) * dt
@@ -146,10 +163,12 @@ def path_step(
         rb4, wb4 = rb.reshape(nb, h, wd, c), wb.reshape(nb, h, wd, c)
         for b, wins in enumerate(obs.windows_b):
             t0, t1 = float(np.min(wins[0].start)), float(np.max(wins[0].end))
-            tb = t0 + (np.arange(3) + 0.5) * (t1 - t0) / 3
+            # As many samples as the knots' hats need (a long bin spans several).
+            ns = max(3, int(np.ceil(SAMPLES_PER_KNOT * (t1 - t0) / knot_dt)))
+            tb = t0 + (np.arange(ns) + 0.5) * (t1 - t0) / ns
             add(
                 tb,
-                [_weight_at(wins, float(t), (h, wd)) * (t1 - t0) / 3 for t in tb],
+                [_weight_at(wins, float(t), (h, wd)) * (t1 - t0) / ns for t in tb],
                 rb4[b],
                 wb4[b],
             )
@@ -163,12 +182,33 @@ def path_step(
         for a in range(2):
             normal[a::2, a::2] += reg
             grad[a::2] += reg @ path[:, a]
+    # The anchor's prior: D(0) stays near 0 (the registration's) unless the early samples
+    # say otherwise with confidence (the normal matrix is the inverse covariance, the
+    # weights being inverse variances; subsampled rows count stride**2 times).
+    normal[0, 0] += 1.0 / (ANCHOR_PX * stride) ** 2
+    normal[1, 1] += 1.0 / (ANCHOR_PX * stride) ** 2
     keep = np.repeat(free, 2)
     step = np.zeros(2 * k)
     step[keep] = scaled_step(normal[np.ix_(keep, keep)], grad[keep], {}, 1.0)  # (plain)
     new = path + step.reshape(k, 2)
+    d0 = new[0].copy()
+    new -= d0
     new_disp = np.asarray(disp, np.float64).copy()
     new_disp[0] = new
     span = max(float(knots[-1]), 1e-12)
     velocity = (new[-1] / span)[None].astype(np.float32)
-    return Layers(layers.label, velocity, layers.front, layers.background, (knots, new_disp))
+    return Layers(layers.label, velocity, layers.front, layers.background, (knots, new_disp)), d0
+
+
+def anchor_image(L: np.ndarray, shape: tuple[int, int, int], d0: np.ndarray) -> np.ndarray:
+    """``L`` (H W, C) moved by ``d0`` px (x, y): ``L'(y) = L(y - d0)`` (cubic spline,
+    :func:`scipy.ndimage.shift`; border reflected as the background layer), so that
+    ``L'(x - D(t) + d0)`` is ``L(x - D(t))``: the image of a path moved by ``-d0``
+    (:func:`path_step`). (H W, C) float64."""
+    from scipy.ndimage import shift
+
+    h, w, c = shape
+    img = np.asarray(L, np.float64).reshape(h, w, c)
+    by = (float(d0[1]), float(d0[0]))
+    out = np.stack([shift(img[..., k], by, order=3, mode="reflect") for k in range(c)], -1)
+    return out.reshape(h * w, c)
