@@ -28,9 +28,8 @@ POOL_CLIP_NATS = 2.0
 BOUNDARY_BAND_PX = 8
 #: Gaussian (full-resolution px) over which that evidence is pooled: enough to steady a
 #: pixel's evidence with its nearest neighbours', little enough not to carry it a pixel
-#: across the boundary (each pixel mislabelled along a moving edge smears it over the
-#: path: Cannon 320x240, object moving at (40, 10) px/s, 182 object pixels missed and 88
-#: taken at 1.5 px, 50 and 32 at 0.7 px).
+#: across the boundary (each pixel mislabelled along a moving edge smears the edge over
+#: the path; tests/test_deblur_layers.py measures it on a sharp scene).
 BOUNDARY_SIGMA_PX = 0.7
 #: Evidence (nats) by which a pixel's working-grid layer is favoured there.
 BOUNDARY_PRIOR_NATS = 1.0
