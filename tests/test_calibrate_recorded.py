@@ -163,3 +163,24 @@ def test_undecodable_gray_frames_are_skipped_not_fatal(tmp_path):
     assert cal.homography is None and cal.cell_x is not None and (cal.cell_x < 0).all()
     assert any("decoded" in s for s in cal.provenance["skipped"])
     assert "leakage_median" in cal.summary
+
+
+def test_a_measurement_flat_field_of_its_own_size_without_its_dark_frames(tmp_path):
+    """The measurement camera may have its own size; without its own dark frames its flat
+    field borrows the VET sensor's dark model (its medians, the grids differing): the
+    folder calibrates, and only the per-pixel gain ratio is skipped, naming why."""
+    import cv2
+
+    _write_folder(tmp_path / "rec")
+    (tmp_path / "rec" / "meas_flat_0.005s_00.png").unlink()
+    flat = np.full((40, 56), 64.0 + 0.5 * 2.0e5 * 0.005)
+    cv2.imwrite(str(tmp_path / "rec" / "meas_flat_0.005s_00.png"), flat.astype(np.uint16))
+    out = tmp_path / "cal.npz"
+    r = run_vet("calibrate", "--frames", tmp_path / "rec", "-o", out)
+    assert r.returncode == 0, r.stderr.decode()
+    assert b"Traceback" not in r.stderr
+    cal = c.read_calibration(out)
+    assert cal.gain_ratio is None and cal.homography is not None
+    assert any(
+        "gain ratio (measurement and VET frames differ" in s for s in cal.provenance["skipped"]
+    )

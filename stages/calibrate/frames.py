@@ -26,6 +26,7 @@ from ..rig import RigParams
 from .calfile import Calibration
 from .geometry import fit_homography
 from .gray_code import decode_gray
+from .meas_flat import flat_rates
 from .sensor_models import dark_model, leakage_map, signal_rate
 
 log = logging.getLogger("vet.calibrate")
@@ -179,15 +180,14 @@ def calibrate_frames(
         skipped.append("leakage (need open and closed flat-field frames)")
 
     if frames.meas_flat and open_rate is not None:
-        t_m = max(frames.meas_flat)
-        if t_m in frames.meas_dark:
-            meas_rate = ((frames.meas_flat[t_m] - frames.meas_dark[t_m]) / t_m).astype(np.float32)
-        else:  # same sensor type: borrow the VET sensor's dark model (DESIGN.md §2)
-            meas_rate = signal_rate(frames.meas_flat[t_m], t_m, bias, dark_dn_s)
+        # Its own dark frames, else the VET sensor's dark model (same sensor type:
+        # DESIGN.md §2; its medians for a camera of another size).
+        meas_rate, _ = flat_rates(frames.meas_flat, frames.meas_dark, frames.open, bias, dark_dn_s)
         if meas_rate.shape != open_rate.shape:
             skipped.append(
-                "gain ratio (measurement and VET frames differ in size; a measurement->VET "
-                "homography is not implemented)"
+                "gain ratio (measurement and VET frames differ in size; the measurement "
+                "camera's gain and vignetting are fitted through its chessboard mapping "
+                "instead, under parts)"
             )
         else:
             ok = open_rate > 1e-6 * max(float(np.max(open_rate)), 1e-30)
