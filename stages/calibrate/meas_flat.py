@@ -39,16 +39,14 @@ def rate_ratio(meas_rate: np.ndarray, open_rate: np.ndarray, rig: RigParams) -> 
     place on the VET sensor (``rig``'s mapping, :func:`stages.optics.measure_to_vet`):
     (Hm, Wm) float64, NaN where the pixel lands outside the VET frame (half a pixel in)
     or the VET rate is not positive."""
-    from scipy.ndimage import map_coordinates
-
-    from ..optics import measure_to_vet
+    from ..optics import bilinear_matrix, measure_to_vet
 
     xv, yv = measure_to_vet(rig.replace(measure_size=(meas_rate.shape[1], meas_rate.shape[0])))
     h, w = open_rate.shape
     inside = (xv >= 0.5) & (xv <= w - 0.5) & (yv >= 0.5) & (yv <= h - 0.5)
-    vet = map_coordinates(
-        np.asarray(open_rate, np.float64), [yv - 0.5, xv - 0.5], order=1, mode="nearest"
-    )
+    # (the sampling the measurement camera's model renders with: MeasureGeometry)
+    sample = bilinear_matrix(xv - 0.5, yv - 0.5, (h, w))
+    vet = (sample @ np.asarray(open_rate, np.float32).ravel()).reshape(xv.shape).astype(np.float64)
     ok = inside & np.isfinite(vet) & (vet > 1e-6 * max(float(np.nanmax(open_rate)), 1e-30))
     out = np.full(meas_rate.shape, np.nan)
     out[ok] = np.asarray(meas_rate, np.float64)[ok] / vet[ok]
