@@ -241,3 +241,31 @@ def test_a_fit_bin_sampled_per_subframe_is_the_sum_of_the_simulators_subframes()
 
     assert error(step) < 5e-3  # (0.2%: OpenCV's fixed-point warps against float64 weights)
     assert error(BIN_STEP_COARSE) > 3e-2  # (7.8%)
+
+
+def test_deblur_samples_its_fit_bins_as_finely_as_the_frame_allows(monkeypatch):
+    """deblur builds the bins' operators at the spacing bin_step gives its frame (a small
+    frame: finer than a quarter pixel), and a tile at its frame's, not its own."""
+    import stages.deblur.joint as joint
+    from stages.deblur import deblur
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    seen: list[float] = []
+    build = joint.build_operators
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["step_px_bins"])
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(joint, "build_operators", spy)
+    scene = load_scene("builtin:chart", (160, 48))
+    rig = RigParams(sensor_size=(160, 48))
+    cap = simulate(scene, parse_motion("translate:30,0"), rig, seed=0)
+    deblur(cap["vet"], motion_init="truth")
+    assert seen and max(seen) < 0.25
+    seen.clear()
+    deblur(cap["vet"], motion_init="truth", tile=64)
+    assert seen and max(seen) < 0.25
