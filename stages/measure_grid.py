@@ -2,9 +2,11 @@
 
 The measurement camera of a real rig (:class:`stages.optics.MeasureGeometry`) records on
 its own pixel grid. Readers that compare its images with the VET image pixel by pixel
-(hdr-static, the deblur's misfit, the motion estimates) take them onto the VET grid here:
-interpolated (:func:`register_measure`), or inverted through the camera's sampling
-(:func:`fit_bin`), which keeps what the interpolation smooths.
+(hdr-static, the motion estimates, the deblur's misfit in tiles) take them onto the VET
+grid here: interpolated (:func:`register_measure`), or inverted through the camera's
+sampling (:func:`fit_bin`), which keeps what the interpolation smooths. The deblur's
+misfit of a whole frame needs neither: it fits the bins on the camera's own grid through
+its sampling (:func:`stages.deblur.problem.observations`).
 """
 
 from __future__ import annotations

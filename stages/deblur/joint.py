@@ -73,6 +73,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import scipy.sparse as sp
 
+from .camera_grid import bins_on_vet_grid
 from .joint_options import EDGE_REL_MIN, JointOptions
 from .operator import Layers, motion_layers, static_rows
 from .problem import (
@@ -156,6 +157,7 @@ def solve_image(
     free: np.ndarray | None = None,
     data_diag: np.ndarray | None = None,
     ws: np.ndarray | None = None,
+    still: np.ndarray | None = None,
 ) -> np.ndarray:
     """One weighted least-squares image step (PCG), ``L`` of shape (H W, C).
 
@@ -163,6 +165,9 @@ def solve_image(
     ``data_diag``: the diagonal of the data terms' normal matrix for the preconditioner
     (computed from ``w``, ``wb`` when not given; any positive approximation will do).
     ``ws``: the weights of the measuring stream's term ``obs.stream`` (when it has one).
+    ``still`` (H W,) bool: free pixels that no moving path touches, re-estimated from
+    their data alone (no smoothness between two of them), as :func:`fuse_still` would
+    where their columns do not overlap.
     """
     h, wd, c = obs.shape
     n = h * wd
@@ -186,6 +191,10 @@ def solve_image(
     prec = (expo / ref.reshape(n, c)).reshape(h, wd, c)
     sx, sy = _smooth_weights(L.reshape(h, wd, c), ref, prec, opts.lam, opts.edge_rel, opts.edge_snr)
     del prec
+    if still is not None:
+        st = still.reshape(h, wd, 1)
+        sx[:, :-1] *= ~(st[:, :-1] & st[:, 1:])
+        sy[:-1] *= ~(st[:-1] & st[1:])
     dsm = np.zeros((h, wd, c))
     dsm += sx
     dsm[:, 1:] += sx[:, :-1]
@@ -241,7 +250,7 @@ def moving_support(
     """
     n = A.shape[1]
     free = np.zeros(n, bool)
-    for M in [A] + (Ab.parts if Ab is not None else []):
+    for M in [A] + (Ab.blurs if Ab is not None else []):
         moving = ~static_rows(M)
         if moving.any():
             # The stored values are positive weights: a column is reached by a moving
@@ -492,6 +501,11 @@ def deblur_joint(
             fuse = ~free & ~saturated.reshape(n) if fusing else None
             if fusing and fuse.any():  # (a global motion leaves no pixel to fuse)
                 L[fuse] = np.maximum(fuse_still(obs, A, Ab, data_diag, fuse, L[fuse]), floor[fuse])
+            still_px = None
+            if obs.sampling is not None and fusing and fuse.any():
+                # Through a camera's sampling a still pixel's bins also see its
+                # neighbours: the closed form above only starts it; the solve fits it.
+                still_px, free = fuse, free | fuse
             if report is not None:
                 report["still_pixels"] = (
                     "fused" if fusing and fuse.any() else "hdr-static" if not free.all() else "none"
@@ -527,6 +541,7 @@ def deblur_joint(
             free=free,
             data_diag=data_diag,
             ws=ws,
+            still=still_px,
         )
         iters_done += cg_iters
         L = np.where(free[:, None], np.maximum(L, floor), L)
@@ -541,10 +556,11 @@ def deblur_joint(
                 wb = _robust(rb, obs.wb, opts.cauchy_k)
             if S is not None:
                 ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
+            rb, wb_v = bins_on_vet_grid(obs, rb, wb)
             if refine_path:
                 from .path_steps import anchor_image, path_step
 
-                layers, d0 = path_step(obs, L, layers, r, w, rb, wb, frame_s)
+                layers, d0 = path_step(obs, L, layers, r, w, rb, wb_v, frame_s)
                 if np.any(d0 != 0):  # (the residuals are the model's: it is unchanged)
                     L = anchor_image(L, (h, wd, c), d0)
                 vel = layers.velocity[layers.label].astype(np.float32)
@@ -552,19 +568,21 @@ def deblur_joint(
                 from .affine import affine_step
 
                 vel = affine_step(
-                    obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts, affine_state
+                    obs, L, vel, r, w, rb, wb_v, T, frame_s, leakage, opts, affine_state
                 )
             elif opts.layer_motion and layers is None:
                 from .layer_steps import layer_step
 
-                vel = layer_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts, layer_state)
+                vel = layer_step(
+                    obs, L, vel, r, w, rb, wb_v, T, frame_s, leakage, opts, layer_state
+                )
             elif opts.update_motion:
                 from .motion_steps import motion_step
 
-                vel = motion_step(obs, L, vel, r, w, rb, wb, T, frame_s, leakage, opts)
+                vel = motion_step(obs, L, vel, r, w, rb, wb_v, T, frame_s, leakage, opts)
                 if still is not None:
                     vel[still] = 0.0
-            del r, rb  # (not held through the next solve)
+            del r, rb, wb_v  # (not held through the next solve)
         log.debug(
             "deblur: step %d build %.1fs solve %.1fs motion %.1fs",
             it,

@@ -45,6 +45,11 @@ class Observations:
     stream : StreamTerm or None
         The stream's term for the current motion (built from ``stream_src``, or given:
         a coarse level's).
+    sampling : scipy CSR of shape (Hm Wm, H W) or None
+        A real rig's measurement camera (:meth:`stages.optics.MeasureGeometry.operator`
+        times its vignetting): ``yb``, ``wb`` then lie on the camera's own grid, B rows
+        of Hm Wm pixels, and each bin's operator is this matrix times the bin's blur
+        (:func:`build_operators`). None: the bins lie on the VET grid.
     """
 
     shape: tuple[int, int, int]
@@ -56,6 +61,9 @@ class Observations:
     windows_b: list[list[Window]]
     stream_src: tuple | None = None
     stream: StreamTerm | None = None
+    sampling: sp.csr_matrix | None = None
+    #: (Hm, Wm): the camera's grid, with ``sampling``.
+    meas_shape: tuple[int, int] | None = None
 
 
 #: Fewest time bins the misfit reads of a capture that keeps its whole measuring stream
@@ -122,7 +130,11 @@ def bin_step(max_speed_px_s: float, span_s: float, n_bins: int, pixels: int) -> 
 
 
 def observations(
-    cap: Capture, use_measure: bool = True, stream: bool = False, n_bins: int = FIT_BINS
+    cap: Capture,
+    use_measure: bool = True,
+    stream: bool = False,
+    n_bins: int = FIT_BINS,
+    measure_grid: bool = True,
 ) -> Observations:
     """Turn a capture into electrons and noise weights (see :class:`Observations`).
 
@@ -132,6 +144,12 @@ def observations(
     subframe; :func:`fit_bins` says how many a motion needs), or with ``stream`` through
     the stream's aligned mean (``stream_src``, :mod:`stages.deblur.stream`; experimental:
     on textured scenes and moving objects it still loses to the bins).
+
+    A real rig's measurement camera (not the VET sensor's grid) has its bins observed on
+    its own grid through its sampling (``Observations.sampling``) with ``measure_grid``;
+    without, or when they were registered already, on the VET grid
+    (:func:`stages.measure_grid.register_measure`: a stream interpolated, bins inverted
+    through the sampling).
     """
     rig = cap.rig
     g = rig.gain_dn_per_e
@@ -150,6 +168,11 @@ def observations(
     wins_b: list[list[Window]] = []
     if use_measure and cap.keeps_stream and not stream:
         cap = cap.time_bins(n_bins)
+    if measure_grid and not rig.ideal_geometry and cap.measure is not None:
+        if not cap.keeps_stream and cap.measure_noise is None and use_measure:
+            from .camera_grid import camera_observations
+
+            return camera_observations(cap, (h, w, c), y, wt, wins)
     if not rig.ideal_geometry and cap.measure is not None:
         from ..measure_grid import register_measure
 
@@ -174,10 +197,7 @@ def observations(
         and cap.measure.shape[0] > 0
     ):
         nb = cap.measure.shape[0]
-        span = np.diff(cap.measure_times, axis=1)[:, 0]
-        n_sub = cap.measure_counts().astype(np.float64)
-        dur = n_sub * rig.subframe_s  # exposed: a dropped subframe leaves a gap in a bin
-        dur = np.where(n_sub == np.maximum(np.rint(span / rig.subframe_s), 1), span, dur)
+        n_sub, dur, wins_b = bin_timing(cap)
         shot_k = read_k = 1.0
         if cap.measure_noise is not None:  # registered: vignetting and interpolation
             shot_k, read_k = (v.astype(np.float64)[..., None] for v in cap.measure_noise)
@@ -202,11 +222,23 @@ def observations(
             del wbb
             eb -= rig.dark_current_e_s * dur[b]
             yb[rows] = eb.reshape(-1, c)
-        for b in range(nb):
-            t0, t1 = (float(v) for v in cap.measure_times[b])
-            # A bin with a dropped subframe saw its span's light for fewer subframes.
-            wins_b.append([Window(t0, t1, float(rig.measure_fraction * dur[b] / span[b]))])
     return Observations((h, w, c), y.reshape(h * w, c), wt.reshape(h * w, c), wins, yb, wb, wins_b)
+
+
+def bin_timing(cap: Capture) -> tuple[np.ndarray, np.ndarray, list[list[Window]]]:
+    """Per measuring bin: its subframes, the seconds it exposed, and its window (the light
+    fraction as weight; a bin with a dropped subframe saw its span's light for fewer
+    subframes, which leaves a gap in it)."""
+    rig = cap.rig
+    span = np.diff(cap.measure_times, axis=1)[:, 0]
+    n_sub = cap.measure_counts().astype(np.float64)
+    dur = n_sub * rig.subframe_s
+    dur = np.where(n_sub == np.maximum(np.rint(span / rig.subframe_s), 1), span, dur)
+    wins = [
+        [Window(float(t0), float(t1), float(rig.measure_fraction * dur[b] / span[b]))]
+        for b, (t0, t1) in enumerate(cap.measure_times)
+    ]
+    return n_sub, dur, wins
 
 
 def effective_T(cap: Capture, tf: float) -> np.ndarray:
@@ -261,8 +293,11 @@ class StackedOperator:
     parts' float32, so no (B N, C) float64 array is ever made.
     """
 
-    def __init__(self, parts: list[sp.csr_matrix]):
+    def __init__(self, parts: list[sp.csr_matrix], blurs: list[sp.csr_matrix] | None = None):
         self.parts = parts
+        #: The bins' blurs on the VET grid (the parts themselves, or what a camera's
+        #: sampling multiplies): where the motion moves an integration path.
+        self.blurs = parts if blurs is None else blurs
         self.parts_t = [M.T for M in parts]  # transposed views, made once
         self.rows = parts[0].shape[0]
         self.shape = (self.rows * len(parts), parts[0].shape[1])
@@ -349,7 +384,8 @@ def build_operators(
 ) -> tuple[sp.csr_matrix, StackedOperator | None]:
     """Blur operators of the VET image and of the measuring bins for a motion
     (``layers``: the motion as :class:`~stages.deblur.operator.Layers` when the caller
-    has them, e.g. with trajectories; else read from ``velocity``)."""
+    has them, e.g. with trajectories; else read from ``velocity``). Bins observed through
+    a camera's sampling (``obs.sampling``) get its product with each blur."""
     from concurrent.futures import ThreadPoolExecutor
 
     if layers is None:
@@ -369,7 +405,11 @@ def build_operators(
                 obs.windows_b,
             )
         )
-    return A, StackedOperator(mats) if mats else None
+    if not mats:
+        return A, None
+    if obs.sampling is None:
+        return A, StackedOperator(mats)
+    return A, StackedOperator([(obs.sampling @ M).tocsr() for M in mats], mats)
 
 
 def grad(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -33,6 +33,19 @@ def block_sum(a: np.ndarray) -> np.ndarray:
     return _blocks(a, a.shape[0], a.shape[1]).sum(axis=2)
 
 
+def block_sum_matrix(h: int, w: int):
+    """:func:`block_sum` of an (H, W) image as a scipy CSR matrix (H/2 W/2, H W) float32
+    (its transpose is the piecewise-constant prolongation)."""
+    import scipy.sparse as sp
+
+    h2, w2 = h // 2, w // 2
+    yy, xx = np.mgrid[0 : 2 * h2, 0 : 2 * w2]
+    rows = (yy // 2) * w2 + xx // 2
+    cols = yy * w + xx
+    ones = np.ones(rows.size, np.float32)
+    return sp.csr_matrix((ones, (rows.ravel(), cols.ravel())), shape=(h2 * w2, h * w))
+
+
 def block_windows(T: np.ndarray, frame_s: float, leakage: float) -> list[Window]:
     """Windows of a block's summed row: weight ``(open children) + eps (closed ones)``."""
     t = np.sort(_blocks(np.asarray(T, np.float64), T.shape[0], T.shape[1]), axis=2)
@@ -62,17 +75,37 @@ def coarsen(
     wt = var_sum(obs.w, (h, w, c)).reshape(h2 * w2, c)
     yb = wb = None
     wins_b: list[list[Window]] = []
+    sampling = None
     if obs.yb is not None:
         nb = len(obs.windows_b)
-        yb4 = obs.yb.reshape(nb, h, w, c)
-        wb4 = obs.wb.reshape(nb, h, w, c)
-        yb = np.concatenate([block_sum(yb4[b]).reshape(h2 * w2, c) for b in range(nb)])
-        wb = np.concatenate([var_sum(wb4[b], (h, w, c)).reshape(h2 * w2, c) for b in range(nb)])
+        # The bins' own grid: the VET grid, or a camera's (2 x 2 blocks of it, sampling
+        # the coarse image as its fine pixels sample the coarse pixels' children).
+        hm, wm = (h, w) if obs.sampling is None else obs.meas_shape
+        yb4 = obs.yb.reshape(nb, hm, wm, c)
+        wb4 = obs.wb.reshape(nb, hm, wm, c)
+        m2 = (hm // 2) * (wm // 2)
+        yb = np.concatenate([block_sum(yb4[b]).reshape(m2, c) for b in range(nb)])
+        wb = np.concatenate([var_sum(wb4[b], (hm, wm, c)).reshape(m2, c) for b in range(nb)])
+        if obs.sampling is not None:
+            sampling = (block_sum_matrix(hm, wm) @ obs.sampling @ block_sum_matrix(h, w).T).tocsr()
+        # A coarse bin pixel on the VET grid sums four children's rows; through a camera's
+        # sampling the sum is the sampling's, of the prolonged (unsummed) blur.
+        k = 4.0 if obs.sampling is None else 1.0
         wins_b = [
-            [Window(win.start, win.end, 4.0 * np.asarray(win.weight)) for win in wins]
+            [Window(win.start, win.end, k * np.asarray(win.weight)) for win in wins]
             for wins in obs.windows_b
         ]
-    coarse = Observations((h2, w2, c), y, wt, block_windows(T, frame_s, leakage), yb, wb, wins_b)
+    coarse = Observations(
+        (h2, w2, c),
+        y,
+        wt,
+        block_windows(T, frame_s, leakage),
+        yb,
+        wb,
+        wins_b,
+        sampling=sampling,
+        meas_shape=None if sampling is None else (obs.meas_shape[0] // 2, obs.meas_shape[1] // 2),
+    )
     t_mean = block_sum(np.asarray(T, np.float64)) / 4.0
     return coarse, t_mean.astype(np.float32)
 

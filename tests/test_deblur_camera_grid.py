@@ -1,0 +1,100 @@
+"""A real rig's measuring bins fitted on the measurement camera's own grid
+(stages.deblur.camera_grid, ``Observations.sampling``): known answers, seeded."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.deblur.camera_grid import bins_on_vet_grid
+from stages.deblur.problem import build_operators, observations
+from stages.deblur.pyramid import coarsen
+from stages.formats.capture import Capture
+from stages.optics import MeasureGeometry, rig_profile
+
+W, H = 40, 32
+
+
+def noiseless_capture(truth: np.ndarray, n_bins: int = 3) -> Capture:
+    """A still capture of the realistic rig whose bins are the camera's noiseless render
+    of ``truth`` (H, W, 1) electrons/s: each bin ``n_sub`` subframes of it."""
+    rig = rig_profile("realistic", (W, H), read_noise_e=0.0, dark_current_e_s=0.0)
+    geom = MeasureGeometry(rig)
+    tau = rig.subframe_s
+    n_sub = 4
+    light = geom.render(truth * np.float32(tau * rig.measure_fraction))
+    dn = light * np.float32(rig.gain_dn_per_e * rig.measure_gain * n_sub)
+    times = np.array([[b * n_sub * tau, (b + 1) * n_sub * tau] for b in range(n_bins)])
+    return Capture(
+        I=np.full((H, W, 1), 100.0, np.float32),
+        T=np.full((H, W), rig.frame_s, np.float32),
+        channels=["Y"],
+        rig=rig,
+        measure=np.repeat(dn[None], n_bins, axis=0),
+        measure_times=times,
+        meta={"measure_subframes": [n_sub] * n_bins},
+    )
+
+
+def texture() -> np.ndarray:
+    yy, xx = np.mgrid[0:H, 0:W]
+    return (2e3 * (1.5 + np.sin(xx / 1.7) * np.cos(yy / 2.3)))[..., None].astype(np.float32)
+
+
+def test_the_model_reproduces_noiseless_bins_on_the_cameras_grid():
+    """The bins' operators (sampling times blur) map the true image onto the recorded
+    bins exactly, row for row of the camera's grid."""
+    truth = texture()
+    cap = noiseless_capture(truth)
+    obs = observations(cap)
+    assert obs.sampling is not None and obs.meas_shape == cap.rig.measure_shape
+    assert obs.yb.shape == (3 * W * H, 1)  # (the realistic camera is the VET sensor's size)
+    _A, Ab = build_operators(obs, np.zeros((H, W, 2), np.float32))
+    model = Ab.mv(truth.reshape(-1, 1).astype(np.float64))
+    assert np.allclose(model, obs.yb, rtol=1e-4, atol=1e-3)
+    # Without the camera's grid: bins inverted onto the VET grid, which the model does
+    # not reproduce everywhere (at the frame's edges the camera sees no VET pixel).
+    reg = observations(cap, measure_grid=False)
+    assert reg.sampling is None
+    _A, Ab_reg = build_operators(reg, np.zeros((H, W, 2), np.float32))
+    miss = np.abs(Ab_reg.mv(truth.reshape(-1, 1).astype(np.float64)) - reg.yb)
+    assert miss.max() > 0.1 * np.abs(reg.yb).max()
+
+
+def test_bins_on_the_vet_grid_keep_the_misfits_gradient():
+    """``bins_on_vet_grid``: for any VET-grid change ``z``, sum(w_v r_v z) equals the camera
+    grid's r^T W S z (the motion steps' gradient), and w_v is diag(S^T W S)."""
+    cap = noiseless_capture(texture(), n_bins=2)
+    obs = observations(cap)
+    rng = np.random.default_rng(5)
+    m = obs.sampling.shape[0]
+    rb = rng.normal(size=(2 * m, 1)).astype(np.float32)
+    wb = rng.uniform(0.5, 2.0, size=(2 * m, 1)).astype(np.float32)
+    rv, wv = bins_on_vet_grid(obs, rb, wb)
+    assert rv.shape == wv.shape == (2 * H * W, 1)
+    S = obs.sampling.astype(np.float64)
+    for b in range(2):
+        z = rng.normal(size=H * W)
+        cam = slice(b * m, (b + 1) * m)
+        vet = slice(b * H * W, (b + 1) * H * W)
+        lhs = float(np.sum(wv[vet, 0] * rv[vet, 0] * z))
+        rhs = float(rb[cam, 0] @ (wb[cam, 0] * (S @ z)))
+        assert lhs == pytest.approx(rhs, rel=1e-4)
+        diag = np.asarray(S.multiply(S).T @ wb[cam, 0]).ravel()
+        assert np.allclose(wv[vet, 0], diag, rtol=1e-5)
+    assert bins_on_vet_grid(obs, None, None) == (None, None)
+
+
+def test_the_coarse_level_reproduces_a_blockwise_constant_image():
+    """One level coarser (2 x 2 blocks of both grids), an image constant on the VET
+    grid's blocks is mapped onto the coarse bins exactly."""
+    coarse_truth = texture()[::2, ::2]
+    truth = np.repeat(np.repeat(coarse_truth, 2, axis=0), 2, axis=1)
+    cap = noiseless_capture(truth)
+    obs = observations(cap)
+    cobs, _t = coarsen(obs, cap.T, cap.rig.frame_s, cap.rig.leakage)
+    assert cobs.meas_shape == (H // 2, W // 2)
+    assert cobs.sampling.shape == ((H // 2) * (W // 2), (H // 2) * (W // 2))
+    _A, Ab = build_operators(cobs, np.zeros((H // 2, W // 2, 2), np.float32))
+    model = Ab.mv(coarse_truth.reshape(-1, 1).astype(np.float64))
+    assert np.allclose(model, cobs.yb, rtol=1e-4, atol=1e-2)
