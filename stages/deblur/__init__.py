@@ -344,7 +344,7 @@ def deblur(
             )
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
-    from .problem import bin_step, fit_bins
+    from .problem import bin_step, fit_bins, vet_step
 
     # Time bins of a stream that the misfit reads: short enough for the motion to blur
     # none of them by more than a fraction of a pixel.
@@ -352,6 +352,8 @@ def deblur(
     # ... each sampled along the motion as finely as the frame's size allows.
     n_bins = n_fit if cap.keeps_stream else (0 if cap.measure is None else cap.measure.shape[0])
     spacing = bin_step(_max_speed(vel0, layers), tf, n_bins, cap.shape[0] * cap.shape[1])
+    # ... and the VET image's, as finely.
+    vet_spacing = vet_step(_max_speed(vel0, layers), tf, cap.shape[0] * cap.shape[1])
     # Pixels saturated in the VET image and in the first bin: only a lower bound is known.
     # (Those saturated in the VET image alone are measured by the bins, which the default
     # method fits; the paper's method, which fits I only, keeps their hdr-static value.)
@@ -374,6 +376,8 @@ def deblur(
             opts = replace(opts, fuse_still=fuse_still)
         if opts.step_px_bins is None:  # (a tile's is the frame's)
             opts = replace(opts, step_px_bins=spacing)
+        if opts.step_px is None:
+            opts = replace(opts, step_px=vet_spacing)
         tiles_cap = cap
         if not cap.rig.ideal_geometry and recorded.measure is not None:
             # The tiles fit bins fitted through the camera's sampling on the whole frame.
@@ -412,6 +416,8 @@ def deblur(
             opts = replace(opts, fuse_still=fuse_still)
         if opts.step_px_bins is None:  # (a tile's is the frame's)
             opts = replace(opts, step_px_bins=spacing)
+        if opts.step_px is None:
+            opts = replace(opts, step_px=vet_spacing)
         # The motion estimated here is refined as the model allows; a given motion (the
         # truth, a tile's share of a frame's) is kept.
         opts = replace(

@@ -76,8 +76,10 @@ import scipy.sparse as sp
 from .camera_grid import bins_on_vet_grid
 from .joint_options import EDGE_REL_MIN, JointOptions
 from .operator import Layers, motion_layers, static_rows
+from .path_steps import robust_misfit
 from .problem import (
     BIN_STEP_COARSE,
+    VET_STEP_COARSE,
     Observations,
     StackedOperator,
     build_operators,
@@ -433,12 +435,16 @@ def deblur_joint(
     if report is not None:
         report["still_pixels"] = "hdr-static"
     if opts.path_motion:
-        from .path_steps import single_path
+        from .path_steps import PathSearch, single_path
 
         refine_path = single_path(layers)
+        search = PathSearch()
     else:
         refine_path = False
-    total = (opts.affine_outer if opts.affine_motion else opts.outer) + 1
+    if refine_path:
+        total = opts.path_outer + 1
+    else:
+        total = (opts.affine_outer if opts.affine_motion else opts.outer) + 1
     coarse = opts.levels > 0 and min(h, wd) >= 2 * opts.coarse_min_px and np.any(velocity != 0)
     # Progress counts the coarse start as `total` steps (whatever its own levels), then
     # the fine solve's steps.
@@ -473,7 +479,7 @@ def deblur_joint(
             A, Ab = build_operators(
                 obs,
                 vel,
-                step_px=opts.step_px,
+                step_px=opts.step_px or VET_STEP_COARSE,
                 step_px_bins=opts.step_px_bins or BIN_STEP_COARSE,
                 subframe_s=subframe_s,
                 layers=layers,
@@ -546,13 +552,21 @@ def deblur_joint(
         iters_done += cg_iters
         L = np.where(free[:, None], np.maximum(L, floor), L)
         ts = time.perf_counter()
-        if not last:  # (the robust weights and the motion step serve the next solve)
+        if not last or refine_path:  # (the residuals of the image step's result)
             r = _mv(A, L) - obs.y
-            w = _robust(r, obs.w, opts.cauchy_k)
             rb = None
             if Ab is not None:
                 rb = Ab.mv(L)
                 rb -= obs.yb
+            if refine_path:  # (the best state so far, this one or an earlier one)
+                fit = robust_misfit(r, obs.w, rb, obs.wb, opts.cauchy_k)
+                L, layers, r, rb, kept = search.keep_best(fit, L, layers, r, rb)
+                if not kept:
+                    vel = layers.velocity[layers.label].astype(np.float32)
+                    log.debug("deblur: path step %d fitted worse; back to the best path", it)
+        if not last:  # (the robust weights and the motion step serve the next solve)
+            w = _robust(r, obs.w, opts.cauchy_k)
+            if Ab is not None:
                 wb = _robust(rb, obs.wb, opts.cauchy_k)
             if S is not None:
                 ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
@@ -560,7 +574,7 @@ def deblur_joint(
             if refine_path:
                 from .path_steps import anchor_image, path_step
 
-                layers, d0 = path_step(obs, L, layers, r, w, rb, wb_v, frame_s)
+                layers, d0 = path_step(obs, L, layers, r, w, rb, wb_v, frame_s, search.gain)
                 if np.any(d0 != 0):  # (the residuals are the model's: it is unchanged)
                     L = anchor_image(L, (h, wd, c), d0)
                 vel = layers.velocity[layers.label].astype(np.float32)

@@ -34,6 +34,9 @@ class JointOptions:
     #: Gauss-Newton step on its knots between image steps
     #: (:func:`stages.deblur.path_steps.path_step`); off as ``affine_motion`` is.
     path_motion: bool = True
+    #: Outer steps when the camera path is refined (each after the first steps the path,
+    #: kept only where the data then fit better: :class:`stages.deblur.path_steps.PathSearch`).
+    path_outer: int = 6
     #: Refine the velocities of translating layers (model ``layers``) by Gauss-Newton
     #: steps between image steps (:func:`stages.deblur.layer_steps.layer_step`); off as
     #: ``affine_motion`` is.
@@ -42,7 +45,9 @@ class JointOptions:
     #: Fit a stream capture through its aligned mean, not time bins (experimental).
     stream_fit: bool = False
     fuse_still: bool | None = None
-    step_px: float = 1.0
+    #: Sample spacing (px) of the VET image's operator; None: what
+    #: :func:`stages.deblur.deblur` finds for the frame (:func:`stages.deblur.problem.vet_step`).
+    step_px: float | None = None
     #: Sample spacing (px) of the measuring bins' operators; None: what
     #: :func:`stages.deblur.deblur` finds for the frame (:func:`stages.deblur.problem.bin_step`).
     step_px_bins: float | None = None

@@ -49,6 +49,51 @@ SMOOTH_REL = 1e-3
 ANCHOR_PX = 0.05
 
 
+#: Each rejected path step halves the next one's length (:class:`PathSearch`).
+REJECT_SHRINK = 0.5
+
+
+def robust_misfit(
+    r: np.ndarray, w: np.ndarray, rb: np.ndarray | None, wb: np.ndarray | None, k: float
+) -> float:
+    """The Cauchy misfit ``sum k^2 log(1 + w r^2 / k^2)`` of the VET image's residuals
+    ``r`` (weights ``w``) and the bins' ``rb`` (``wb``), whose reweighted least squares
+    the image steps solve: the objective by which :class:`PathSearch` compares paths."""
+    k2 = float(k) * float(k)
+
+    def part(res: np.ndarray, wt: np.ndarray) -> float:
+        z = np.square(res, dtype=np.float64)
+        z *= wt
+        z /= k2
+        return k2 * float(np.log1p(z).sum())
+
+    return part(r, w) + (part(rb, wb) if rb is not None else 0.0)
+
+
+class PathSearch:
+    """The alternation of image and path steps as a descent on :func:`robust_misfit`.
+
+    A Gauss-Newton step on the knots holds the image; the image step after it may fit
+    the data worse than before (the step overshoots what the image then absorbs). Each
+    state after an image step is kept when its misfit is the lowest so far; otherwise
+    the search returns to the best state and the next path step from there is shorter
+    (:data:`REJECT_SHRINK`). The deblur's result is then never a state that fits the
+    data worse than an earlier one.
+    """
+
+    def __init__(self) -> None:
+        self.best: tuple | None = None
+        self.gain = 1.0
+
+    def keep_best(self, misfit: float, L: np.ndarray, layers: Layers, r, rb):
+        """``(L, layers, r, rb)`` of the best state, this one if it is (then True)."""
+        if self.best is None or misfit <= self.best[0]:
+            self.best = (misfit, L, layers, r, rb)
+            return L, layers, r, rb, True
+        self.gain *= REJECT_SHRINK
+        return (*self.best[1:], False)
+
+
 def single_path(layers: Layers | None) -> bool:
     """Whether ``layers`` is one layer moving along a trajectory (a camera shake)."""
     return (
@@ -105,8 +150,10 @@ def path_step(
     rb: np.ndarray | None,
     wb: np.ndarray | None,
     frame_s: float,
+    gain: float = 1.0,
 ) -> tuple[Layers, np.ndarray]:
-    """One Gauss-Newton step on the knots of a single layer's trajectory, ``D(0)`` included.
+    """One Gauss-Newton step on the knots of a single layer's trajectory, ``D(0)`` included,
+    times ``gain`` (a shortened step: :class:`PathSearch`).
 
     ``L`` (H W, C) electrons/s, ``r``/``w`` the VET residual and weights (H W, C), ``rb``/
     ``wb`` the bins' (B H W, C) or None. Returns new :class:`Layers` with the refined
@@ -189,7 +236,7 @@ def path_step(
     normal[1, 1] += 1.0 / (ANCHOR_PX * stride) ** 2
     keep = np.repeat(free, 2)
     step = np.zeros(2 * k)
-    step[keep] = scaled_step(normal[np.ix_(keep, keep)], grad[keep], {}, 1.0)  # (plain)
+    step[keep] = gain * scaled_step(normal[np.ix_(keep, keep)], grad[keep], {}, 1.0)  # (plain)
     new = path + step.reshape(k, 2)
     d0 = new[0].copy()
     new -= d0

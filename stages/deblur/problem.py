@@ -81,6 +81,9 @@ FIT_SAMPLE_PIXELS = 1 << 25
 #: Finest and coarsest spacing (px along the motion) of the samples within a fit bin.
 BIN_STEP_FINE = 0.2
 BIN_STEP_COARSE = 1.5
+#: Coarsest spacing of the VET image's samples (:func:`vet_step`; the finest is a fit
+#: bin's).
+VET_STEP_COARSE = 1.0
 
 
 def fit_bins(
@@ -127,6 +130,23 @@ def bin_step(max_speed_px_s: float, span_s: float, n_bins: int, pixels: int) -> 
     allowed = FIT_SAMPLE_PIXELS / max(int(pixels), 1) - int(n_bins)
     step = travel / max(allowed, 1.0)
     return float(min(max(step, BIN_STEP_FINE), BIN_STEP_COARSE))
+
+
+def vet_step(max_speed_px_s: float, span_s: float, pixels: int) -> float:
+    """Spacing (px along the motion) of the samples of the VET image's operator, for a
+    frame of ``pixels`` (H W) whose fastest motion is ``max_speed_px_s`` over ``span_s``.
+
+    A VET pixel sums the subframes it is open for, each the scene at its own position,
+    as a fit bin does (:func:`bin_step`): samples :data:`BIN_STEP_FINE` apart (at most one
+    per subframe, by the operator) make its model the simulator's, within the
+    :data:`FIT_SAMPLE_PIXELS` budget for the frame, and at most
+    :data:`VET_STEP_COARSE` apart.
+    """
+    travel = max(float(max_speed_px_s), 0.0) * max(float(span_s), 0.0)
+    if not np.isfinite(travel):
+        return VET_STEP_COARSE
+    step = travel / max(FIT_SAMPLE_PIXELS / max(int(pixels), 1), 1.0)
+    return float(min(max(step, BIN_STEP_FINE), VET_STEP_COARSE))
 
 
 def observations(
