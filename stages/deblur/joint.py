@@ -40,10 +40,10 @@ block, an eighth of the work per iteration), and hdr-static times the prolonged
 the error against the fine iterations).
 
 Only the pixels that a moving integration path touches are re-estimated
-(:func:`moving_support`). A pixel whose paths do not move sees only its own point of
+(:func:`~stages.deblur.still_pixels.moving_support`). A pixel whose paths do not move sees only its own point of
 the scene, and its column of every operator holds only its own static row, so its
 noise-weighted maximum-likelihood value from all its data (the VET image and the
-measuring bins) has a closed form (:func:`fuse_still`); the VET data alone give
+measuring bins) has a closed form (:func:`~stages.deblur.still_pixels.fuse_still`); the VET data alone give
 hdr-static's. ``JointOptions.fuse_still`` decides which a still pixel takes:
 
 * ``None`` (the default): the fused value whenever the motion moves some pixel, and
@@ -75,7 +75,7 @@ import scipy.sparse as sp
 
 from .camera_grid import bins_on_vet_grid
 from .joint_options import EDGE_REL_MIN, JointOptions
-from .operator import Layers, motion_layers, static_rows
+from .operator import Layers, motion_layers
 from .path_steps import robust_misfit
 from .problem import (
     BIN_STEP_COARSE,
@@ -89,6 +89,7 @@ from .problem import (
     pcg,
     product,
 )
+from .still_pixels import fuse_still, moving_support
 from .stream import StreamTerm, layer_motion, stream_term
 
 log = logging.getLogger(__name__)
@@ -238,57 +239,6 @@ def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
     z2 /= k * k
     z2 += 1.0
     return np.divide(w, z2, out=z2)
-
-
-def moving_support(
-    A: sp.csr_matrix, Ab: StackedOperator | None = None, S: StreamTerm | None = None
-) -> np.ndarray:
-    """Pixels of ``L0`` that some moving integration path samples, bool (H W,).
-
-    A row of the operator whose path does not move sees only its own pixel: the static
-    model, for which the pixel's value has a closed form (hdr-static's from its VET data,
-    or :func:`fuse_still`'s from all of it; see ``JointOptions.fuse_still``). Only the
-    pixels that a moving path touches (the columns of the other rows) are re-estimated.
-    """
-    n = A.shape[1]
-    free = np.zeros(n, bool)
-    for M in [A] + (Ab.blurs if Ab is not None else []):
-        moving = ~static_rows(M)
-        if moving.any():
-            # The stored values are positive weights: a column is reached by a moving
-            # row exactly where this product is non-zero (no per-non-zero temporary).
-            free |= np.asarray(M.T @ moving.astype(np.float32)) != 0
-    if S is not None:  # the stream's rows see their neighbours where their kernel spreads
-        free |= S.reached(S.moving())
-    return free
-
-
-def fuse_still(
-    obs: Observations,
-    A: sp.csr_matrix,
-    Ab: StackedOperator | None,
-    data_diag: np.ndarray,
-    pixels: np.ndarray,
-    fallback: np.ndarray,
-) -> np.ndarray:
-    """Maximum-likelihood value of still pixels from all their data, (P, C).
-
-    ``pixels`` (H W,) bool must be outside :func:`moving_support`: each such pixel's
-    column of ``A`` and of every bin's operator holds only its own static row, so the
-    noise-weighted least-squares value from the VET image and the measuring bins together
-    is ``(A^T w y + sum_b A_b^T w_b y_b) / diag(A^T w A + sum_b A_b^T w_b A_b)`` there
-    (with the stream's term ``obs.stream`` in place of the bins when the capture keeps
-    its stream: its row there is the identity). ``fallback`` is kept where no datum has
-    weight (clipped everywhere).
-    """
-    rhs = product(A.T, (obs.w * obs.y).astype(np.float32)).astype(np.float64)
-    if Ab is not None:
-        rhs += Ab.mvt_weighted(obs.wb, obs.yb)
-    if obs.stream is not None:
-        rhs += obs.stream.adjoint(obs.stream.w * obs.stream.y)
-    d = data_diag[pixels]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(d > 0, rhs[pixels] / d, fallback)
 
 
 def build_stream(src: tuple, velocity: np.ndarray, layers: Layers | None = None) -> StreamTerm:
