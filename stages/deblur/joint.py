@@ -40,17 +40,21 @@ block, an eighth of the work per iteration), and hdr-static times the prolonged
 the error against the fine iterations).
 
 Only the pixels that a moving integration path touches are re-estimated
-(:func:`~stages.deblur.still_pixels.moving_support`). A pixel whose paths do not move sees only its own point of
-the scene, and its column of every operator holds only its own static row, so its
-noise-weighted maximum-likelihood value from all its data (the VET image and the
-measuring bins) has a closed form (:func:`~stages.deblur.still_pixels.fuse_still`); the VET data alone give
-hdr-static's. ``JointOptions.fuse_still`` decides which a still pixel takes:
+(:func:`~stages.deblur.still_pixels.moving_support`). A pixel whose paths do not move
+sees only its own point of the scene, and its column of every operator holds only its
+own static row, so its noise-weighted maximum-likelihood value from all its data (the
+VET image and the measuring bins) has a closed form
+(:func:`~stages.deblur.still_pixels.fuse_still`); the VET data alone give hdr-static's.
+(A real rig's bins, fitted through the measurement camera's sampling, see a still
+pixel's neighbours too: there the closed form starts the still pixels and the solve
+fits them, with no smoothness between two of them.) ``JointOptions.fuse_still`` decides
+which a still pixel takes:
 
 * ``None`` (the default): the fused value whenever the motion moves some pixel, and
   hdr-static's, untouched, when it moves none. A capture in which deblur finds no
   motion comes out exactly as hdr-static (deblur invents nothing on a still scene);
   one with motion is reconstructed from all its data, the moving pixels by the solve
-  and the still ones by :func:`fuse_still`.
+  and the still ones by :func:`~stages.deblur.still_pixels.fuse_still`.
 * ``True``: always fused, a still capture too (``vet deblur --fuse-still``).
 * ``False``: never; still pixels keep hdr-static (``vet deblur --keep-still``).
 
@@ -169,8 +173,9 @@ def solve_image(
     (computed from ``w``, ``wb`` when not given; any positive approximation will do).
     ``ws``: the weights of the measuring stream's term ``obs.stream`` (when it has one).
     ``still`` (H W,) bool: free pixels that no moving path touches, re-estimated from
-    their data alone (no smoothness between two of them), as :func:`fuse_still` would
-    where their columns do not overlap.
+    their data alone (no smoothness between two of them), as
+    :func:`~stages.deblur.still_pixels.fuse_still` would where their columns do not
+    overlap.
     """
     h, wd, c = obs.shape
     n = h * wd
