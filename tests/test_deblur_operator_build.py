@@ -246,9 +246,10 @@ def test_a_fit_bin_sampled_per_subframe_is_the_sum_of_the_simulators_subframes()
 def test_deblur_samples_its_fit_bins_as_finely_as_the_frame_allows(monkeypatch):
     """deblur builds the bins' operators at the spacing bin_step gives its frame (a small
     frame: finer than a quarter pixel), and a tile at its frame's, not its own; the VET
-    image's at vet_step's alike."""
+    image's at vet_step's (finely along a camera path only)."""
     import stages.deblur.joint as joint
     from stages.deblur import deblur
+    from stages.deblur.problem import VET_STEP_COARSE
     from stages.motion import parse_motion
     from stages.rig import RigParams
     from stages.scenes import load_scene
@@ -269,21 +270,26 @@ def test_deblur_samples_its_fit_bins_as_finely_as_the_frame_allows(monkeypatch):
     cap = simulate(scene, parse_motion("translate:30,0"), rig, seed=0)
     deblur(cap["vet"], motion_init="truth")
     assert seen and max(seen) < 0.25
-    assert seen_vet and max(seen_vet) < 0.25  # (the VET image's too: vet_step)
+    assert seen_vet and set(seen_vet) == {VET_STEP_COARSE}  # (no camera path: vet_step)
     seen.clear()
-    seen_vet.clear()
     deblur(cap["vet"], motion_init="truth", tile=64)
     assert seen and max(seen) < 0.25
+    # Along a camera path the VET image's operator is sampled finely too.
+    seen_vet.clear()
+    shaken = simulate(scene, parse_motion("shake:4"), rig, seed=0, methods=["vet"])["vet"]
+    deblur(shaken, motion_init="truth")
     assert seen_vet and max(seen_vet) < 0.25
 
 
 def test_vet_step_is_fine_on_small_frames_and_coarse_on_large_ones():
-    """vet_step: 30 px of travel over 131 subframes samples a 320x240 frame's VET image
+    """vet_step along a camera path: 30 px of travel samples a 320x240 frame's VET image
     at the fit bins' finest spacing, keeps 1 px on a 1280x1024 frame (the sample budget),
-    and a still frame at the finest (no samples to spend)."""
+    and a still frame at the finest (no samples to spend); off a path, 1 px."""
     from stages.deblur.problem import BIN_STEP_FINE, VET_STEP_COARSE, vet_step
 
-    assert vet_step(30.0, 1.0, 320 * 240) == BIN_STEP_FINE
-    assert vet_step(30.0, 1.0, 1280 * 1024) == VET_STEP_COARSE
-    assert vet_step(0.0, 1.0, 1280 * 1024) == BIN_STEP_FINE
-    assert BIN_STEP_FINE < vet_step(30.0, 1.0, 640 * 512) < VET_STEP_COARSE
+    assert vet_step(30.0, 1.0, 320 * 240, True) == BIN_STEP_FINE
+    assert vet_step(30.0, 1.0, 1280 * 1024, True) == VET_STEP_COARSE
+    assert vet_step(0.0, 1.0, 1280 * 1024, True) == BIN_STEP_FINE
+    assert BIN_STEP_FINE < vet_step(30.0, 1.0, 640 * 512, True) < VET_STEP_COARSE
+    # Not along a camera path: the coarse spacing whatever the frame.
+    assert vet_step(30.0, 1.0, 320 * 240, False) == VET_STEP_COARSE

@@ -352,8 +352,9 @@ def deblur(
     # ... each sampled along the motion as finely as the frame's size allows.
     n_bins = n_fit if cap.keeps_stream else (0 if cap.measure is None else cap.measure.shape[0])
     spacing = bin_step(_max_speed(vel0, layers), tf, n_bins, cap.shape[0] * cap.shape[1])
-    # ... and the VET image's, as finely.
-    vet_spacing = vet_step(_max_speed(vel0, layers), tf, cap.shape[0] * cap.shape[1])
+    # ... and the VET image's along a camera path.
+    along_path = layers is not None and layers.trajectory is not None
+    vet_spacing = vet_step(_max_speed(vel0, layers), tf, cap.shape[0] * cap.shape[1], along_path)
     # Pixels saturated in the VET image and in the first bin: only a lower bound is known.
     # (Those saturated in the VET image alone are measured by the bins, which the default
     # method fits; the paper's method, which fits I only, keeps their hdr-static value.)

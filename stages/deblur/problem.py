@@ -132,16 +132,22 @@ def bin_step(max_speed_px_s: float, span_s: float, n_bins: int, pixels: int) -> 
     return float(min(max(step, BIN_STEP_FINE), BIN_STEP_COARSE))
 
 
-def vet_step(max_speed_px_s: float, span_s: float, pixels: int) -> float:
+def vet_step(max_speed_px_s: float, span_s: float, pixels: int, along_path: bool) -> float:
     """Spacing (px along the motion) of the samples of the VET image's operator, for a
     frame of ``pixels`` (H W) whose fastest motion is ``max_speed_px_s`` over ``span_s``.
 
     A VET pixel sums the subframes it is open for, each the scene at its own position,
-    as a fit bin does (:func:`bin_step`): samples :data:`BIN_STEP_FINE` apart (at most one
-    per subframe, by the operator) make its model the simulator's, within the
-    :data:`FIT_SAMPLE_PIXELS` budget for the frame, and at most
-    :data:`VET_STEP_COARSE` apart.
+    as a fit bin does (:func:`bin_step`). Along a measured camera path (``along_path``)
+    the path's anchor ``D(0)`` is fitted from the earliest samples, many of them bright
+    VET pixels closed after a few subframes, whose one sample at the window's middle
+    would bias it: there samples :data:`BIN_STEP_FINE` apart (at most one per subframe,
+    by the operator) make the model the simulator's, within the
+    :data:`FIT_SAMPLE_PIXELS` budget for the frame. Otherwise :data:`VET_STEP_COARSE`:
+    with estimated layers (their velocities and boundaries a little off) the finer
+    model fits worse (``make evaluate-stream``, the object rows).
     """
+    if not along_path:
+        return VET_STEP_COARSE
     travel = max(float(max_speed_px_s), 0.0) * max(float(span_s), 0.0)
     if not np.isfinite(travel):
         return VET_STEP_COARSE
