@@ -70,7 +70,7 @@ def test_bins_on_the_vet_grid_keep_the_misfits_gradient():
     m = obs.sampling.shape[0]
     rb = rng.normal(size=(2 * m, 1)).astype(np.float32)
     wb = rng.uniform(0.5, 2.0, size=(2 * m, 1)).astype(np.float32)
-    rv, wv = bins_on_vet_grid(obs, rb, wb)
+    rv, wv = bins_on_vet_grid(obs.sampling, obs.shape, rb, wb)
     assert rv.shape == wv.shape == (2 * H * W, 1)
     S = obs.sampling.astype(np.float64)
     for b in range(2):
@@ -82,7 +82,7 @@ def test_bins_on_the_vet_grid_keep_the_misfits_gradient():
         assert lhs == pytest.approx(rhs, rel=1e-4)
         diag = np.asarray(S.multiply(S).T @ wb[cam, 0]).ravel()
         assert np.allclose(wv[vet, 0], diag, rtol=1e-5)
-    assert bins_on_vet_grid(obs, None, None) == (None, None)
+    assert bins_on_vet_grid(obs.sampling, obs.shape, None, None) == (None, None)
 
 
 def test_the_coarse_level_reproduces_a_blockwise_constant_image():

@@ -17,34 +17,37 @@ import scipy.sparse as sp
 
 from ..formats.capture import Capture
 from ..physics import bin_may_clip
-from .problem import Observations, bin_timing
 
 
-def camera_observations(
-    cap: Capture, shape: tuple[int, int, int], y: np.ndarray, wt: np.ndarray, wins: list
-) -> Observations:
-    """:func:`observations` of a real rig's bins on the measurement camera's own grid.
+def camera_bins(
+    cap: Capture, n_sub: np.ndarray, dur: np.ndarray
+) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray, tuple[int, int]]:
+    """A real rig's bins on the measurement camera's own grid, for the misfit.
 
-    A bin's pixel ``u`` records, in electrons at the camera's gain, ``v_u (S x)_u`` plus the
-    dark current (``S`` the camera's bilinear sampling of the VET grid, ``v`` its
-    vignetting, ``x`` the light the bin's blur brings to the VET grid), with the variance
-    of that count (smoothed over 3 x 3 pixels, as the VET-grid bins') plus one read
-    noise and quantisation step per subframe; 0 weight where a subframe may have clipped.
-    The model is the simulator's camera exactly, so no inversion (and none of its noise
+    ``n_sub``, ``dur`` (B,): each bin's subframes and exposed seconds. A bin's pixel
+    ``u`` records, in electrons at the camera's gain, ``v_u (S x)_u`` plus the dark
+    current (``S`` the camera's bilinear sampling of the VET grid, ``v`` its vignetting,
+    ``x`` the light the bin's blur brings to the VET grid), with the variance of that
+    count (smoothed over 3 x 3 pixels, as the VET-grid bins') plus one read noise and
+    quantisation step per subframe; 0 weight where a subframe may have clipped. The model
+    is the simulator's camera exactly, so no inversion (and none of its noise
     correlation) stands between the data and the misfit.
+
+    Returns the sampling ``v S`` (scipy CSR (Hm Wm, H W) float32), the bins minus the
+    dark current (B Hm Wm, C) electrons, their inverse variances (B Hm Wm, C) and the
+    camera's grid (Hm, Wm).
     """
     import cv2
 
     from ..optics import MeasureGeometry
 
     rig = cap.rig
-    h, w, c = shape
+    c = cap.measure.shape[-1]
     geom = MeasureGeometry(rig)
     hm, wm = geom.shape_m
     sampling = (sp.diags(geom.vign.ravel()) @ geom.operator()).tocsr().astype(np.float32)
     g = rig.gain_dn_per_e * rig.measure_gain
     read = rig.read_noise_e**2 + 1.0 / (12.0 * g * g)
-    n_sub, dur, wins_b = bin_timing(cap)
     nb, m = cap.measure.shape[0], hm * wm
     yb = np.empty((nb * m, c), np.float32)
     wb = np.empty((nb * m, c), np.float32)
@@ -58,33 +61,27 @@ def camera_observations(
         wbb[bin_may_clip(raw / np.float32(n_sub[b]), rig)] = 0.0
         wb[rows] = wbb.reshape(m, c)
         yb[rows] = (eb - rig.dark_current_e_s * dur[b]).reshape(m, c)
-    return Observations(
-        shape,
-        y.reshape(h * w, c),
-        wt.reshape(h * w, c),
-        wins,
-        yb,
-        wb,
-        wins_b,
-        sampling=sampling,
-        meas_shape=(hm, wm),
-    )
+    return sampling, yb, wb, (hm, wm)
 
 
 def bins_on_vet_grid(
-    obs: Observations, rb: np.ndarray | None, wb: np.ndarray | None
+    sampling: sp.csr_matrix | None,
+    shape: tuple[int, int, int],
+    rb: np.ndarray | None,
+    wb: np.ndarray | None,
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Bin residuals ``rb`` and weights ``wb`` (B rows each) as the VET grid sees them.
+    """Bin residuals ``rb`` and weights ``wb`` (B rows each) as the VET grid, of shape
+    ``shape`` (H, W, C), sees them.
 
-    On the VET grid they are themselves. Through the camera's sampling ``S`` they are
+    Without a camera's ``sampling`` (the bins on the VET grid) they are themselves. Through the camera's sampling ``S`` they are
     per bin ``d = diag(S^T W S)`` and ``S^T W r / d`` ((B H W, C) each): the same
     gradient ``S^T W r`` of the misfit for any linearisation on the VET grid, and the
     diagonal of its normal matrix (the motion steps' Gauss-Newton terms).
     """
-    S = obs.sampling
+    S = sampling
     if S is None or rb is None:
         return rb, wb
-    h, w, c = obs.shape
+    h, w, c = shape
     m = S.shape[0]
     nb = rb.shape[0] // m
     ST = S.T.tocsr()

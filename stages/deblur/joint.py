@@ -525,7 +525,7 @@ def deblur_joint(
                 wb = _robust(rb, obs.wb, opts.cauchy_k)
             if S is not None:
                 ws = _robust(S.apply(L) - S.y, S.w, opts.cauchy_k)
-            rb, wb_v = bins_on_vet_grid(obs, rb, wb)
+            rb, wb_v = bins_on_vet_grid(obs.sampling, obs.shape, rb, wb)
             if refine_path:
                 from .path_steps import anchor_image, path_step
 

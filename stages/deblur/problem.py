@@ -196,9 +196,21 @@ def observations(
         cap = cap.time_bins(n_bins)
     if measure_grid and not rig.ideal_geometry and cap.measure is not None:
         if not cap.keeps_stream and cap.measure_noise is None and use_measure:
-            from .camera_grid import camera_observations
+            from .camera_grid import camera_bins
 
-            return camera_observations(cap, (h, w, c), y, wt, wins)
+            n_sub, dur, wins_b = bin_timing(cap)
+            sampling, yb, wb, grid = camera_bins(cap, n_sub, dur)
+            return Observations(
+                (h, w, c),
+                y.reshape(h * w, c),
+                wt.reshape(h * w, c),
+                wins,
+                yb,
+                wb,
+                wins_b,
+                sampling=sampling,
+                meas_shape=grid,
+            )
     if not rig.ideal_geometry and cap.measure is not None:
         from ..measure_grid import register_measure
 
