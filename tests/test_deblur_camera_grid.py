@@ -98,3 +98,42 @@ def test_the_coarse_level_reproduces_a_blockwise_constant_image():
     _A, Ab = build_operators(cobs, np.zeros((H // 2, W // 2, 2), np.float32))
     model = Ab.mv(coarse_truth.reshape(-1, 1).astype(np.float64))
     assert np.allclose(model, cobs.yb, rtol=1e-4, atol=1e-2)
+
+
+def test_still_pixels_fitted_through_the_sampling_take_no_smoothness():
+    """solve_image with ``still`` covering every pixel fits them on their data alone: the
+    prior's weight changes nothing, where without ``still`` it smooths the result."""
+    from stages.deblur.joint import JointOptions, solve_image
+
+    truth = texture()
+    cap = noiseless_capture(truth)
+    obs = observations(cap)
+    A, Ab = build_operators(obs, np.zeros((H, W, 2), np.float32))
+    n = H * W
+    start = np.full((n, 1), float(truth.mean()))
+    ref = np.full((H, W, 1), float(truth.mean()))
+    zeros = np.zeros((n, 1))
+    expo = np.full((n, 1), cap.rig.frame_s)
+    everywhere = np.ones(n, bool)
+
+    def solve(lam: float, still: np.ndarray | None) -> np.ndarray:
+        return solve_image(
+            obs,
+            A,
+            Ab,
+            obs.w,
+            obs.wb,
+            start,
+            ref,
+            zeros,
+            zeros,
+            JointOptions(lam=lam),
+            200,
+            expo,
+            free=everywhere,
+            still=still,
+        )
+
+    free_of_prior = solve(0.15, everywhere)
+    assert np.allclose(free_of_prior, solve(50.0, everywhere), rtol=1e-6)
+    assert not np.allclose(solve(0.15, None), solve(50.0, None), rtol=1e-3)
