@@ -15,53 +15,23 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..formats.capture import Capture
-from ..physics import bin_may_clip
+from ..rig import RigParams
 
 
-def camera_bins(
-    cap: Capture, n_sub: np.ndarray, dur: np.ndarray
-) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray, tuple[int, int]]:
-    """A real rig's bins on the measurement camera's own grid, for the misfit.
+def camera_sampling(rig: RigParams) -> tuple[sp.csr_matrix, tuple[int, int]]:
+    """The measurement camera's response on the VET grid, and its grid (Hm, Wm).
 
-    ``n_sub``, ``dur`` (B,): each bin's subframes and exposed seconds. A bin's pixel
-    ``u`` records, in electrons at the camera's gain, ``v_u (S x)_u`` plus the dark
-    current (``S`` the camera's bilinear sampling of the VET grid, ``v`` its vignetting,
-    ``x`` the light the bin's blur brings to the VET grid), with the variance of that
-    count (smoothed over 3 x 3 pixels, as the VET-grid bins') plus one read noise and
-    quantisation step per subframe; 0 weight where a subframe may have clipped. The model
-    is the simulator's camera exactly, so no inversion (and none of its noise
-    correlation) stands between the data and the misfit.
-
-    Returns the sampling ``v S`` (scipy CSR (Hm Wm, H W) float32), the bins minus the
-    dark current (B Hm Wm, C) electrons, their inverse variances (B Hm Wm, C) and the
-    camera's grid (Hm, Wm).
+    Row ``u`` (a camera pixel, row-major) holds the bilinear weights of the VET pixels
+    its centre lands among (:meth:`stages.optics.MeasureGeometry.operator`) times the
+    camera's vignetting there: a bin pixel records ``(v S x)_u`` electrons at the camera's
+    gain for the light ``x`` the bin's blur brings to the VET grid (dark current apart),
+    the simulator's camera exactly. scipy CSR (Hm Wm, H W) float32.
     """
-    import cv2
-
     from ..optics import MeasureGeometry
 
-    rig = cap.rig
-    c = cap.measure.shape[-1]
     geom = MeasureGeometry(rig)
-    hm, wm = geom.shape_m
     sampling = (sp.diags(geom.vign.ravel()) @ geom.operator()).tocsr().astype(np.float32)
-    g = rig.gain_dn_per_e * rig.measure_gain
-    read = rig.read_noise_e**2 + 1.0 / (12.0 * g * g)
-    nb, m = cap.measure.shape[0], hm * wm
-    yb = np.empty((nb * m, c), np.float32)
-    wb = np.empty((nb * m, c), np.float32)
-    for b in range(nb):
-        rows = slice(b * m, (b + 1) * m)
-        raw = np.asarray(cap.measure[b], np.float32)
-        eb = raw.astype(np.float64) / g
-        var = cv2.blur(np.maximum(eb, 0), (3, 3), borderType=cv2.BORDER_REPLICATE)
-        var = var.reshape(eb.shape) + n_sub[b] * read
-        wbb = 1.0 / var
-        wbb[bin_may_clip(raw / np.float32(n_sub[b]), rig)] = 0.0
-        wb[rows] = wbb.reshape(m, c)
-        yb[rows] = (eb - rig.dark_current_e_s * dur[b]).reshape(m, c)
-    return sampling, yb, wb, (hm, wm)
+    return sampling, geom.shape_m
 
 
 def bins_on_vet_grid(

@@ -33,8 +33,9 @@ class Observations:
         Inverse variance (Poisson-Gaussian: signal + read + quantisation); 0 where the
         VET sensor saturated.
     yb : ndarray of shape (B H W, C) or None
-        Measuring bins minus the dark current, electrons (at the measurement sensor).
-    wb : ndarray of shape (B H W, C) or None
+        Measuring bins minus the dark current, electrons (at the measurement sensor);
+        (B Hm Wm, C) on a real rig's camera grid (``sampling``).
+    wb : ndarray of the shape of ``yb`` or None
         Their inverse variances; 0 where a subframe of the bin clipped.
     windows_b : list of list of Window
         Exposure windows of each bin (light fraction as weight).
@@ -194,24 +195,23 @@ def observations(
     wins_b: list[list[Window]] = []
     if use_measure and cap.keeps_stream and not stream:
         cap = cap.time_bins(n_bins)
-    if measure_grid and not rig.ideal_geometry and cap.measure is not None:
-        if not cap.keeps_stream and cap.measure_noise is None and use_measure:
-            from .camera_grid import camera_bins
+    # A real rig's bins stay on the measurement camera's grid, observed through its
+    # sampling, at its gain (measure_grid); else they come onto the VET grid.
+    sampling = grid = None
+    g_bins = g
+    if (
+        measure_grid
+        and use_measure
+        and not rig.ideal_geometry
+        and cap.measure is not None
+        and not cap.keeps_stream
+        and cap.measure_noise is None
+    ):
+        from .camera_grid import camera_sampling
 
-            n_sub, dur, wins_b = bin_timing(cap)
-            sampling, yb, wb, grid = camera_bins(cap, n_sub, dur)
-            return Observations(
-                (h, w, c),
-                y.reshape(h * w, c),
-                wt.reshape(h * w, c),
-                wins,
-                yb,
-                wb,
-                wins_b,
-                sampling=sampling,
-                meas_shape=grid,
-            )
-    if not rig.ideal_geometry and cap.measure is not None:
+        sampling, grid = camera_sampling(rig)
+        g_bins = g * rig.measure_gain
+    elif not rig.ideal_geometry and cap.measure is not None:
         from ..measure_grid import register_measure
 
         # Onto the VET grid with their noise: bins inverted through the camera's
@@ -234,33 +234,45 @@ def observations(
         and cap.measure_times is not None
         and cap.measure.shape[0] > 0
     ):
-        nb = cap.measure.shape[0]
+        nb, m = cap.measure.shape[0], cap.measure.shape[1] * cap.measure.shape[2]
         n_sub, dur, wins_b = bin_timing(cap)
         shot_k = read_k = 1.0
         if cap.measure_noise is not None:  # registered: vignetting and interpolation
             shot_k, read_k = (v.astype(np.float64)[..., None] for v in cap.measure_noise)
+        read = rig.read_noise_e**2 + 1.0 / (12.0 * g_bins * g_bins)
         import cv2
 
-        # One bin at a time into float32 (B H W, C): no float64 copy of all the bins.
-        yb = np.empty((nb * h * w, c), np.float32)
-        wb = np.empty((nb * h * w, c), np.float32)
+        # One bin at a time into float32 (B M, C) for M pixels of the bins' grid: no
+        # float64 copy of all the bins.
+        yb = np.empty((nb * m, c), np.float32)
+        wb = np.empty((nb * m, c), np.float32)
         for b in range(nb):
-            rows = slice(b * h * w, (b + 1) * h * w)
-            eb = cap.measure[b].astype(np.float64) / g
+            rows = slice(b * m, (b + 1) * m)
+            eb = cap.measure[b].astype(np.float64) / g_bins
             # Shot noise from the count smoothed over 3 x 3 pixels, not the pixel's own:
             # weights from each noisy count favour the low ones, a bias that grows as
             # bins get shorter.
             wbb = cv2.blur(np.maximum(eb, 0), (3, 3), borderType=cv2.BORDER_REPLICATE)
             wbb = wbb.reshape(eb.shape)  # (cv2 drops a single channel's axis)
             wbb *= shot_k
-            wbb += n_sub[b] * (rig.read_noise_e**2 + q) * read_k
+            wbb += n_sub[b] * read * read_k
             np.divide(1.0, wbb, out=wbb)  # inverse variance
             wbb[bin_may_clip(cap.measure[b] / np.float32(n_sub[b]), rig)] = 0.0
             wb[rows] = wbb.reshape(-1, c)
             del wbb
             eb -= rig.dark_current_e_s * dur[b]
             yb[rows] = eb.reshape(-1, c)
-    return Observations((h, w, c), y.reshape(h * w, c), wt.reshape(h * w, c), wins, yb, wb, wins_b)
+    return Observations(
+        (h, w, c),
+        y.reshape(h * w, c),
+        wt.reshape(h * w, c),
+        wins,
+        yb,
+        wb,
+        wins_b,
+        sampling=sampling,
+        meas_shape=grid,
+    )
 
 
 def bin_timing(cap: Capture) -> tuple[np.ndarray, np.ndarray, list[list[Window]]]:
