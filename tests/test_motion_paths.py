@@ -307,3 +307,24 @@ def test_tiles_follow_the_measured_camera_path():
     released, _ = deblur(cap, tile=96, release_stream=True)
     assert cap.measure is None
     np.testing.assert_array_equal(released.radiance, kept.radiance)
+
+
+def test_tile_paths_group_into_the_layers_paths_largest_first():
+    """``_cluster``: tiles' paths scattered 0.3 px about three paths (600, 300, 150 tiles)
+    among 200 wanderers come back as those three paths, largest first, each within
+    0.15 px; a group under MIN_PATH_SHARE of the tiles (30 of 1280) is no layer."""
+    from stages.deblur.layers.paths import _cluster
+
+    rng = np.random.default_rng(4)
+    g = 48
+    truth = [np.cumsum(rng.normal(size=(g, 2)), axis=0) for _ in range(4)]
+    sizes = [600, 300, 150, 30]
+    parts = [
+        p[None] + rng.normal(scale=0.3, size=(n, g, 2)) for p, n in zip(truth, sizes, strict=True)
+    ]
+    parts.append(rng.normal(scale=6.0, size=(200, g, 2)))
+    tiles = np.concatenate(parts)[rng.permutation(sum(sizes) + 200)]
+    found = _cluster(tiles)
+    assert len(found) == 3
+    for path, want in zip(found, truth[:3], strict=True):
+        assert np.abs(path - want).max() < 0.15

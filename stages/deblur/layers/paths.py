@@ -184,18 +184,25 @@ def tile_paths(measure: np.ndarray, times: np.ndarray, rig: RigParams) -> TilePa
 
 def _cluster(paths: np.ndarray) -> list[np.ndarray]:
     """Greedy grouping of tile paths (step 4): the layers' paths, most followed first."""
-    left = paths
-    out = []
+    from scipy.spatial.distance import cdist
+
+    out: list[np.ndarray] = []
     need = max(2, int(np.ceil(MIN_PATH_SHARE * len(paths))))
+    if len(paths) < need:
+        return out
+    # Two paths are close where their RMS distance over the groups is under SAME_PATH_PX:
+    # their squared distance as (G * 2)-vectors under G SAME_PATH_PX^2 (N x N booleans,
+    # not the N x N x G x 2 differences).
+    flat = paths.reshape(len(paths), -1).astype(np.float64)
+    close = cdist(flat, flat, "sqeuclidean") < paths.shape[1] * SAME_PATH_PX**2
+    left = np.arange(len(paths))
     while len(left) >= need and len(out) < MAX_PATHS:
-        diff = left[:, None] - left[None]  # (N, N, G, 2)
-        rms = np.sqrt((diff**2).sum(axis=3).mean(axis=2))
-        close = rms < SAME_PATH_PX
-        best = int(np.argmax(close.sum(axis=1)))
-        members = close[best]
+        sub = close[np.ix_(left, left)]
+        best = int(np.argmax(sub.sum(axis=1)))
+        members = sub[best]
         if members.sum() < need:
             break
-        out.append(np.median(left[members], axis=0))
+        out.append(np.median(paths[left[members]], axis=0))
         left = left[~members]
     return out
 
