@@ -137,3 +137,63 @@ def test_still_pixels_fitted_through_the_sampling_take_no_smoothness():
     free_of_prior = solve(0.15, everywhere)
     assert np.allclose(free_of_prior, solve(50.0, everywhere), rtol=1e-6)
     assert not np.allclose(solve(0.15, None), solve(50.0, None), rtol=1e-3)
+
+
+@pytest.mark.parametrize("box", [(5, 27, 8, 30), (0, 16, 20, 40), (0, H, 0, W)])
+def test_a_tiles_camera_pixels_sample_its_box_as_the_frames_do(box):
+    """``CameraBins.crop``: every camera pixel whose sampled VET pixels all lie in the box
+    is kept, valid, with the frame's row on the box's pixels (so its model of any image
+    is the frame's); the rectangle's other pixels are not valid and sample nothing."""
+    from stages.deblur.camera_grid import CameraBins
+
+    cap = noiseless_capture(texture())
+    frame = CameraBins.of(cap.rig, cap.measure)
+    y0, y1, x0, x1 = box
+    tile = frame.crop(box, (H, W))
+    hm, wm = tile.shape
+    assert tile.measure.shape == (3, hm, wm, 1)
+    assert tile.sampling.shape == (hm * wm, (y1 - y0) * (x1 - x0))
+    rng = np.random.default_rng(7)
+    x = rng.uniform(1, 2, size=(H, W))
+    full = (frame.sampling @ x.ravel()).reshape(frame.shape)
+    S = frame.sampling.tocsr()
+    rows = np.repeat(np.arange(S.shape[0]), np.diff(S.indptr))
+    cy, cx = np.divmod(S.indices, W)
+    outside = ~((cy >= y0) & (cy < y1) & (cx >= x0) & (cx < x1)) & (S.data != 0)
+    held = (np.bincount(rows, outside, minlength=S.shape[0]) == 0).reshape(frame.shape)
+    # The rectangle holds every such pixel, and marks exactly them valid.
+    assert tile.valid.sum() == held.sum() > 0
+    model = (tile.sampling @ x[y0:y1, x0:x1].ravel()).reshape(tile.shape)
+    vy, vx = np.nonzero(tile.valid)
+    fy, fx = np.nonzero(held)
+    r0, c0 = fy.min(), fx.min()
+    assert np.array_equal(vy + r0, fy) and np.array_equal(vx + c0, fx)
+    assert np.allclose(model[tile.valid], full[held], rtol=1e-5)
+    assert np.all(model[~tile.valid] == 0)
+    assert np.array_equal(tile.measure[:, tile.valid], cap.measure[:, held])
+
+
+def test_a_tiles_observations_fit_its_camera_pixels_alone():
+    """A tile's capture with camera bins is observed on them: the model reproduces its
+    valid pixels' noiseless bins, and the pixels that see past the tile weigh 0."""
+    from dataclasses import replace
+
+    from stages.deblur.camera_grid import CameraBins
+    from stages.deblur.tiles import Tile, crop_capture
+    from stages.measure_grid import register_measure
+
+    truth = texture()
+    cap = noiseless_capture(truth)
+    framed = replace(register_measure(cap), camera_bins=CameraBins.of(cap.rig, cap.measure))
+    tile = Tile((0, 16, 0, 20), (0, 24, 0, 28))
+    crop = crop_capture(framed, tile)
+    assert crop.measure.shape[1:3] == (24, 28)  # (registered: the tile's own grid)
+    obs = observations(crop)
+    cam = crop.camera_bins
+    assert obs.meas_shape == cam.shape and obs.sampling is cam.sampling
+    _A, Ab = build_operators(obs, np.zeros((24, 28, 2), np.float32))
+    model = Ab.mv(truth[:24, :28].reshape(-1, 1).astype(np.float64)).reshape(3, *cam.shape)
+    data = obs.yb.reshape(3, *cam.shape)
+    weight = obs.wb.reshape(3, *cam.shape)
+    assert np.allclose(model[:, cam.valid], data[:, cam.valid], rtol=1e-4, atol=1e-3)
+    assert np.all(weight[:, ~cam.valid] == 0) and np.all(weight[:, cam.valid] > 0)

@@ -381,9 +381,16 @@ def deblur(
             opts = replace(opts, step_px=vet_spacing)
         tiles_cap = cap
         if not cap.rig.ideal_geometry and recorded.measure is not None:
-            # The tiles fit bins fitted through the camera's sampling on the whole frame.
-            fitted = register_measure(recorded.time_bins(n_fit), fit=True)
-            tiles_cap = replace(fitted, ideal_T=cap.ideal_T)
+            # The tiles fit the camera's bins on its grid, each the pixels that see it
+            # (stages.deblur.camera_grid); the bins registered onto the VET grid start them.
+            from .camera_grid import CameraBins
+
+            binned = recorded.time_bins(n_fit)
+            tiles_cap = replace(
+                register_measure(binned),
+                ideal_T=cap.ideal_T,
+                camera_bins=CameraBins.of(cap.rig, binned.measure),
+            )
         elif opts.use_measure and not opts.stream_fit and cap.keeps_stream:
             # The bins each tile would fit, made once: a tile's crop of them is what it
             # would bin from its crop of the stream, in less memory.

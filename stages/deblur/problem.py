@@ -197,19 +197,21 @@ def observations(
         cap = cap.time_bins(n_bins)
     # A real rig's bins stay on the measurement camera's grid, observed through its
     # sampling, at its gain (measure_grid); else they come onto the VET grid.
-    sampling = grid = None
+    camera = cap.camera_bins if measure_grid and use_measure else None
     g_bins = g
     if (
-        measure_grid
+        camera is None
+        and measure_grid
         and use_measure
         and not rig.ideal_geometry
         and cap.measure is not None
         and not cap.keeps_stream
         and cap.measure_noise is None
     ):
-        from .camera_grid import camera_sampling
+        from .camera_grid import CameraBins
 
-        sampling, grid = camera_sampling(rig)
+        camera = CameraBins.of(rig, cap.measure)
+    if camera is not None:
         g_bins = g * rig.measure_gain
     elif not rig.ideal_geometry and cap.measure is not None:
         from ..measure_grid import register_measure
@@ -234,10 +236,11 @@ def observations(
         and cap.measure_times is not None
         and cap.measure.shape[0] > 0
     ):
-        nb, m = cap.measure.shape[0], cap.measure.shape[1] * cap.measure.shape[2]
+        bins = cap.measure if camera is None else camera.measure
+        nb, m = bins.shape[0], bins.shape[1] * bins.shape[2]
         n_sub, dur, wins_b = bin_timing(cap)
         shot_k = read_k = 1.0
-        if cap.measure_noise is not None:  # registered: vignetting and interpolation
+        if camera is None and cap.measure_noise is not None:  # registered: interpolated
             shot_k, read_k = (v.astype(np.float64)[..., None] for v in cap.measure_noise)
         read = rig.read_noise_e**2 + 1.0 / (12.0 * g_bins * g_bins)
         import cv2
@@ -248,7 +251,7 @@ def observations(
         wb = np.empty((nb * m, c), np.float32)
         for b in range(nb):
             rows = slice(b * m, (b + 1) * m)
-            eb = cap.measure[b].astype(np.float64) / g_bins
+            eb = bins[b].astype(np.float64) / g_bins
             # Shot noise from the count smoothed over 3 x 3 pixels, not the pixel's own:
             # weights from each noisy count favour the low ones, a bias that grows as
             # bins get shorter.
@@ -257,7 +260,9 @@ def observations(
             wbb *= shot_k
             wbb += n_sub[b] * read * read_k
             np.divide(1.0, wbb, out=wbb)  # inverse variance
-            wbb[bin_may_clip(cap.measure[b] / np.float32(n_sub[b]), rig)] = 0.0
+            wbb[bin_may_clip(bins[b] / np.float32(n_sub[b]), rig)] = 0.0
+            if camera is not None:
+                wbb[~camera.valid] = 0.0  # (a tile's: pixels that see past it)
             wb[rows] = wbb.reshape(-1, c)
             del wbb
             eb -= rig.dark_current_e_s * dur[b]
@@ -270,8 +275,8 @@ def observations(
         yb,
         wb,
         wins_b,
-        sampling=sampling,
-        meas_shape=grid,
+        sampling=None if camera is None else camera.sampling,
+        meas_shape=None if camera is None else camera.shape,
     )
 
 

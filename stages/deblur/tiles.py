@@ -136,6 +136,8 @@ def crop_capture(cap: Capture, tile: Tile) -> Capture:
             changes[f.name] = np.ascontiguousarray(value[ys, xs])
         elif value.ndim >= 3 and value.shape[1:3] == (h, w):
             changes[f.name] = np.ascontiguousarray(value[:, ys, xs])
+    if cap.camera_bins is not None:  # a real rig's bins on its camera's grid
+        changes["camera_bins"] = cap.camera_bins.crop(tile.outer, (h, w))
     return dataclasses.replace(cap, **changes)
 
 

@@ -94,6 +94,10 @@ class Capture:
     # a still pixel as the real rig's LCoS did (switching, per-cell leakage, relay blur),
     # computed on the whole frame so that tiles cropped from it keep it right.
     ideal_T: np.ndarray | None = None
+    # Set by stages.deblur for a tile of a real rig's frame (never stored): its measuring
+    # bins on the measurement camera's grid with the camera's sampling of the tile
+    # (stages.deblur.camera_grid.CameraBins), beside ``measure`` registered onto the tile.
+    camera_bins: Any = None
 
     @property
     def shape(self) -> tuple[int, int]:
