@@ -104,7 +104,9 @@ def reconstruction(
     )
 
 
-def hdr_static(cap: Capture, assume_ideal_rig: bool = False) -> HDRImage:
+def hdr_static(
+    cap: Capture, assume_ideal_rig: bool = False, registered: Capture | None = None
+) -> HDRImage:
     """Invert a capture assuming a still scene.
 
     A real rig's parts (:mod:`stages.optics`, recorded in the capture's rig) enter: the
@@ -120,6 +122,9 @@ def hdr_static(cap: Capture, assume_ideal_rig: bool = False) -> HDRImage:
         Ignore those parts (:func:`stages.optics.ideal_rig`): what reconstructing
         without the rig's calibration gives. The measurement camera must then have the
         VET sensor's size.
+    registered : Capture, optional
+        ``register_measure(cap)`` when the caller has it already (a stream registered
+        once, not twice).
 
     Returns
     -------
@@ -142,7 +147,9 @@ def hdr_static(cap: Capture, assume_ideal_rig: bool = False) -> HDRImage:
             )
         cap = replace(cap, rig=ideal_rig(cap.rig))
     raw = cap
-    cap = register_measure(cap)  # onto the VET grid (a real rig's measurement camera)
+    if registered is None or assume_ideal_rig:
+        registered = register_measure(cap)  # onto the VET grid (a real rig's camera)
+    cap = registered
     # Fitted through the camera's sampling when it came on the camera's own grid (a tile
     # of a frame comes registered already: interpolated).
     registered = cap.measure_noise is not None and raw.measure_noise is None

@@ -337,6 +337,12 @@ def test_hdr_static_models_the_real_rig_and_ignoring_it_costs(small_scene):
     real = simulate(small_scene, STILL, rig_profile("realistic", (96, 80)), seed=3)["vet"]
     assert rms(real) <= 1.1 * rms(ideal)
     assert rms(real, assume=True) > 3 * rms(real)
+    # Given the capture registered already (as deblur has it), the same to the bit.
+    from stages.measure_grid import register_measure
+
+    again = hdr_static(real, registered=register_measure(real))
+    np.testing.assert_array_equal(again.radiance, hdr_static(real).radiance)
+    np.testing.assert_array_equal(again.mask, hdr_static(real).mask)
 
 
 def test_fit_through_geometry_recovers_what_interpolation_smooths():

@@ -302,12 +302,13 @@ def deblur(
         solve_progress = lambda done, total: progress(done + 1, total + 1)  # noqa: E731
 
     t_start = time.perf_counter()
-    static = hdr_static(cap)
     # A real rig's measurement camera: its images onto the VET grid, with their noise
-    # (stages.optics), for the motion estimate; the misfit fits its bins through the
-    # camera's sampling (stages.deblur.problem.observations, from the capture as recorded).
+    # (stages.optics), for hdr-static and the motion estimate; the misfit fits its bins
+    # through the camera's sampling (stages.deblur.problem.observations, from the capture
+    # as recorded).
     recorded = cap
     cap = register_measure(cap)
+    static = hdr_static(recorded, registered=cap)
     if not cap.rig.ideal_shutter:  # on the whole frame, for tiles cropped from it too
         from .problem import effective_T as _effective_T
 
