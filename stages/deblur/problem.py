@@ -176,7 +176,9 @@ def observations(
     its own grid through its sampling (``Observations.sampling``) with ``measure_grid``;
     without, or when they were registered already, on the VET grid
     (:func:`stages.measure_grid.register_measure`: a stream interpolated, bins inverted
-    through the sampling).
+    through the sampling). A tile of a frame brings its camera pixels with it
+    (``cap.camera_bins``, :class:`stages.deblur.camera_grid.CameraBins`), observed in place
+    of its registered ``measure``.
     """
     rig = cap.rig
     g = rig.gain_dn_per_e
