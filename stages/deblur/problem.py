@@ -221,19 +221,11 @@ def observations(
         # Onto the VET grid with their noise: bins inverted through the camera's
         # sampling (interpolation would smooth them), a stream interpolated.
         cap = register_measure(cap, fit=not cap.keeps_stream)
-    if use_measure and cap.keeps_stream:
-        return Observations(
-            (h, w, c),
-            y.reshape(h * w, c),
-            wt.reshape(h * w, c),
-            wins,
-            None,
-            None,
-            [],
-            stream_src=(cap.measure, cap.measure_times, rig),
-        )
+    # A stream observed whole (the subframes replace the bins), or the bins.
+    stream_src = (cap.measure, cap.measure_times, rig) if use_measure and cap.keeps_stream else None
     if (
-        use_measure
+        stream_src is None
+        and use_measure
         and cap.measure is not None
         and cap.measure_times is not None
         and cap.measure.shape[0] > 0
@@ -277,6 +269,7 @@ def observations(
         yb,
         wb,
         wins_b,
+        stream_src=stream_src,
         sampling=None if camera is None else camera.sampling,
         meas_shape=None if camera is None else camera.shape,
     )
