@@ -43,6 +43,31 @@ def test_stacked_operator_products_equal_the_dense_stack():
     assert abs(lhs - rhs) <= 1e-5 * abs(lhs)
 
 
+def test_stacked_groups_and_their_pieces_make_the_whole_stack():
+    # Seven parts go into BIN_GROUPS groups; the normal product's pieces (group and
+    # channel, as threads share them) sum to the whole stack's.
+    rng = np.random.default_rng(4)
+    parts = _parts(rng, n=50, nb=7)
+    S = np.vstack([M.toarray().astype(np.float64) for M in parts])
+    op = StackedOperator(parts)
+    assert 1 < len(op.groups) <= problem.BIN_GROUPS
+    assert [g[2] for g in op.groups][0] == 0 and op.groups[-1][3] == 350
+    x = rng.random((50, 3))
+    w = rng.random((350, 3)).astype(np.float32)
+    whole = S.T @ (w * (S @ x))
+    pieces = np.zeros_like(whole)
+    for c in range(3):
+        xc = np.ascontiguousarray(x[:, c], np.float32)
+        for g in range(len(op.groups)):
+            pieces[:, c] += op.normal_column(g, xc, w, c)
+    np.testing.assert_allclose(pieces, whole, rtol=1e-5)
+    np.testing.assert_allclose(op.normal(x, w), whole, rtol=1e-5)
+    np.testing.assert_allclose(op.mv(x), S @ x, rtol=1e-5)
+    np.testing.assert_allclose(op.diag_normal(w), (S * S).T @ w, rtol=1e-5)
+    # one part alone is one group
+    assert len(StackedOperator(parts[:1]).groups) == 1
+
+
 def test_products_with_long_and_short_rows_equal_the_dense_ones():
     # Long rows (the VET image's operator) go one column at a time, short rows (a
     # bin's) all at once; a transposed (CSC) view alike.

@@ -212,28 +212,36 @@ def solve_image(
     del dsm
     diag += anchor_w
 
+    def vet_column(xc: np.ndarray, k: int) -> np.ndarray:
+        y = A @ xc
+        y *= w[:, k]
+        return AT @ y
+
     def apply_h(x: np.ndarray) -> np.ndarray:
-        # The measuring bins' products run on a second thread beside the VET image's
-        # (scipy's sparse products release the GIL; the two carry similar work).
-        bins = pool.submit(Ab.normal, x, wb) if Ab is not None else None
-        y = product(A, x)
-        y *= w  # (float32 of the float64 product: as (w * y).astype(float32))
-        out = product(AT, y).astype(np.float64)
+        # The data terms' products in pieces (the VET image's and each group of bins',
+        # channel by channel) on two threads: scipy's sparse products release the GIL.
+        xs = [np.ascontiguousarray(x[:, k], np.float32) for k in range(c)]
+        jobs = [(k, pool.submit(vet_column, xs[k], k)) for k in range(c)]
+        if Ab is not None:
+            jobs += [
+                (k, pool.submit(Ab.normal_column, g, xs[k], wb, k))
+                for k in range(c)
+                for g in range(len(Ab.groups))
+            ]
         img = x.reshape(h, wd, c)
         gx, gy = grad(img)
         gx *= sx
         gy *= sy
-        smooth = grad_adjoint(gx, gy).reshape(n, c)
+        out = grad_adjoint(gx, gy).reshape(n, c)
         del gx, gy
-        if bins is not None:
-            out += bins.result()
         if S is not None:
             out += S.adjoint(ws * S.apply(x))
-        out += smooth
         out += anchor_w * x
+        for k, job in jobs:
+            out[:, k] += job.result()
         return out
 
-    with ThreadPoolExecutor(max_workers=1) as pool:
+    with ThreadPoolExecutor(max_workers=2) as pool:
         return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
 
 

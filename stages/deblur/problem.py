@@ -335,66 +335,85 @@ def product(M: sp.spmatrix, x: np.ndarray) -> np.ndarray:
     return np.asarray(M @ np.ascontiguousarray(x, np.float32), np.float32)
 
 
-class StackedOperator:
-    """Operators of several images sharing the unknown (the measuring bins), kept apart.
+#: Groups the measuring bins' operators are stacked into (:class:`StackedOperator`):
+#: enough pieces of work, with the VET image's, to keep two threads busy.
+BIN_GROUPS = 4
 
-    Behaves as their vertical stack for the few products the solvers need, without the
-    copy that assembling the stack would cost; the products go part by part, in the
-    parts' float32, so no (B N, C) float64 array is ever made.
+
+class StackedOperator:
+    """Operators of several images sharing the unknown (the measuring bins).
+
+    Behaves as their vertical stack for the few products the solvers need. The parts are
+    stacked into at most :data:`BIN_GROUPS` consecutive groups (one CSR matrix each,
+    with its transposed view), so that a product is a few calls of scipy's kernels, not
+    one per bin, and the normal product splits into independent pieces, one per group
+    and channel (:meth:`normal_column`), that threads can share. Products go in the
+    parts' float32; no (B N, C) float64 array is ever made.
     """
 
     def __init__(self, parts: list[sp.csr_matrix], blurs: list[sp.csr_matrix] | None = None):
-        self.parts = parts
-        #: The bins' blurs on the VET grid (the parts themselves, or what a camera's
-        #: sampling multiplies): where the motion moves an integration path.
-        self.blurs = parts if blurs is None else blurs
-        self.parts_t = [M.T for M in parts]  # transposed views, made once
         self.rows = parts[0].shape[0]
         self.shape = (self.rows * len(parts), parts[0].shape[1])
-
-    def _slice(self, a: np.ndarray, b: int) -> np.ndarray:
-        return a[b * self.rows : (b + 1) * self.rows]
+        step = -(-len(parts) // min(BIN_GROUPS, len(parts)))
+        #: (stack, its transposed view, first row, end row) of each group.
+        self.groups = []
+        for b0 in range(0, len(parts), step):
+            chunk = parts[b0 : b0 + step]
+            M = chunk[0].tocsr() if len(chunk) == 1 else sp.vstack(chunk, format="csr")
+            self.groups.append((M, M.T, b0 * self.rows, b0 * self.rows + M.shape[0]))
+        #: The bins' blurs on the VET grid (the groups' stacks, or what a camera's
+        #: sampling multiplies): where the motion moves an integration path.
+        self.blurs = [g[0] for g in self.groups] if blurs is None else blurs
 
     def mv(self, x: np.ndarray) -> np.ndarray:
         """``stack @ x`` for ``x`` of shape (N, C), float32 result (B N, C)."""
         x32 = np.asarray(x, np.float32)
         out = np.empty((self.shape[0], x.shape[1]), np.float32)
-        for b, M in enumerate(self.parts):
-            self._slice(out, b)[...] = product(M, x32)
+        for M, _, r0, r1 in self.groups:
+            out[r0:r1] = product(M, x32)
         return out
 
     def mvt(self, r: np.ndarray) -> np.ndarray:
         """``stack.T @ r`` for ``r`` of shape (B N, C), float64 result (N, C)."""
         out = np.zeros((self.shape[1], r.shape[1]))
-        for b, MT in enumerate(self.parts_t):
-            out += MT @ np.asarray(self._slice(r, b), np.float32)
+        for _, MT, r0, r1 in self.groups:
+            out += MT @ np.asarray(r[r0:r1], np.float32)
         return out
 
     def mvt_weighted(self, w: np.ndarray, r: np.ndarray) -> np.ndarray:
-        """``stack.T @ (w * r)`` (both (B N, C)) part by part, float64 (N, C)."""
+        """``stack.T @ (w * r)`` (both (B N, C)) group by group, float64 (N, C)."""
         out = np.zeros((self.shape[1], r.shape[1]))
-        for b, MT in enumerate(self.parts_t):
-            out += MT @ (self._slice(w, b) * self._slice(r, b)).astype(np.float32, copy=False)
+        for _, MT, r0, r1 in self.groups:
+            out += MT @ (w[r0:r1] * r[r0:r1]).astype(np.float32, copy=False)
         return out
+
+    def normal_column(self, g: int, xc: np.ndarray, w: np.ndarray, c: int) -> np.ndarray:
+        """Group ``g``'s share of ``stack.T diag(w) stack @ x`` for channel ``c``:
+        ``xc`` that channel of ``x`` (N,) contiguous float32, ``w`` (B N, C); (N,)
+        float32. The pieces of all groups sum to :meth:`normal`'s column ``c``."""
+        M, MT, r0, r1 = self.groups[g]
+        y = M @ xc
+        y *= w[r0:r1, c]
+        return MT @ y
 
     def normal(self, x: np.ndarray, w: np.ndarray) -> np.ndarray:
         """``stack.T diag(w) stack @ x`` (``w`` of shape (B N, C)), float64 (N, C).
 
-        Part by part: the transient is one part's (N, C) float32 product.
+        Group by group and channel by channel: the transient is one group's (rows,)
+        float32 product.
         """
-        x32 = np.asarray(x, np.float32)
         out = np.zeros((self.shape[1], x.shape[1]))
-        for b, M in enumerate(self.parts):
-            y = product(M, x32)
-            y *= self._slice(w, b)
-            out += self.parts_t[b] @ y
+        for c in range(x.shape[1]):
+            xc = np.ascontiguousarray(x[:, c], np.float32)
+            for g in range(len(self.groups)):
+                out[:, c] += self.normal_column(g, xc, w, c)
         return out
 
     def diag_normal(self, w: np.ndarray) -> np.ndarray:
         """Diagonal of ``stack.T diag(w) stack`` (w of shape (B N, C))."""
         out = None
-        for b, M in enumerate(self.parts):
-            part = diag_normal(M, self._slice(w, b))
+        for M, _, r0, r1 in self.groups:
+            part = diag_normal(M, w[r0:r1])
             out = part if out is None else out + part
         return out
 
@@ -487,6 +506,11 @@ def laplacian(img: np.ndarray) -> np.ndarray:
     return p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * img
 
 
+def _column_dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Each column's dot product of two (N, C) arrays, (C,) (no (N, C) temporary)."""
+    return np.einsum("ij,ij->j", a, b)
+
+
 def pcg(
     apply_h: Callable[[np.ndarray], np.ndarray],
     b: np.ndarray,
@@ -522,11 +546,11 @@ def pcg(
         r = r * free.reshape(-1, 1)
     z = minv * r
     p = z.copy()
-    rz = np.sum(r * z, axis=0)
-    r0 = np.sqrt(np.sum(r * r, axis=0)) + 1e-300
+    rz = _column_dots(r, z)
+    r0 = np.sqrt(_column_dots(r, r)) + 1e-300
     for k in range(iters):
         hp = apply_h(p)
-        php = np.sum(p * hp, axis=0)
+        php = _column_dots(p, hp)
         alpha = np.where(php > 0, rz / np.where(php > 0, php, 1), 0.0)
         x += alpha * p
         r -= alpha * hp
@@ -534,10 +558,10 @@ def pcg(
             r *= free.reshape(-1, 1)
         if callback is not None:
             callback(k, x)
-        if np.all(np.sqrt(np.sum(r * r, axis=0)) < tol * r0):
+        if np.all(np.sqrt(_column_dots(r, r)) < tol * r0):
             break
         np.multiply(minv, r, out=z)
-        rz_new = np.sum(r * z, axis=0)
+        rz_new = _column_dots(r, z)
         beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)
         rz = rz_new
         p *= beta  # p = z + beta p, in place

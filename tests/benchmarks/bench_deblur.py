@@ -79,15 +79,15 @@ def adjoint_error(cap) -> float:
     A, Ab = build_operators(obs, cap.truth_motion, subframe_s=cap.rig.subframe_s)
     rng = np.random.default_rng(0)
     worst = 0.0
-    for M in [A] + Ab.parts:
+    for M in [A] + Ab.blurs:
         x = rng.random(M.shape[1])
         y = rng.random(M.shape[0])
         lhs = float(np.dot(M @ x, y))
         rhs = float(np.dot(x, M.T @ y))
         worst = max(worst, abs(lhs - rhs) / abs(lhs))
     print(
-        f"adjoint test, {1 + len(Ab.parts)} operators of {A.shape[0]} x {A.shape[1]}"
-        f" ({A.nnz + sum(M.nnz for M in Ab.parts)} non-zeros): worst relative error {worst:.2e}",
+        f"adjoint test, {1 + len(Ab.blurs)} operators of {A.shape[0]} x {A.shape[1]}"
+        f" ({A.nnz + sum(M.nnz for M in Ab.blurs)} non-zeros): worst relative error {worst:.2e}",
         flush=True,
     )
     return worst
