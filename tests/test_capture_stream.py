@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -47,3 +49,68 @@ def test_simulate_101_bins_then_hdr_static(tmp_path):
     res = run_vet("hdr-static", cap, "-o", tmp_path / "h.exr")
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "h.exr").is_file()
+
+
+@pytest.mark.parametrize("n_bins", [7, 101, 200])
+def test_one_time_bin_is_that_bin_of_all_of_them(many_bins_capture, n_bins):
+    cap = many_bins_capture
+    cap.meta["measure_subframes"] = [1 + (k % 3 == 0) for k in range(cap.measure.shape[0])]
+    try:
+        every = cap.time_bins(n_bins)
+        for k in range(every.measure.shape[0]):
+            one = cap.time_bin(n_bins, k)
+            assert one.measure.shape == (1, *cap.measure.shape[1:])
+            np.testing.assert_array_equal(one.measure[0], every.measure[k])
+            np.testing.assert_array_equal(one.measure_times[0], every.measure_times[k])
+            assert one.measure_counts()[0] == every.measure_counts()[k]
+    finally:
+        del cap.meta["measure_subframes"]
+
+
+_READ_PEAK = """
+import sys
+from stages.formats import read_capture
+
+
+def peak():  # (the process's own high-water mark: ru_maxrss carries the parent's over)
+    with open("/proc/self/status") as f:
+        return next(int(v.split()[1]) for v in f if v.startswith("VmHWM:")) * 1024
+
+
+before = peak()
+cap = read_capture(sys.argv[1])
+print(cap.measure.nbytes, peak() - before)
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="needs Linux's /proc")
+def test_reading_a_stream_holds_its_frames_once(tmp_path):
+    # The measuring images are stacked as they are read out, not copied beside all of
+    # them: reading a stream costs about its own size, not twice it.
+    import subprocess
+    import sys
+
+    from stages.formats.capture import Capture
+
+    rng = np.random.default_rng(0)
+    h, w, nb = 384, 512, 96
+    measure = rng.integers(0, 4000, (nb, h, w, 3), dtype=np.int16)
+    times = np.stack([np.arange(nb), np.arange(1, nb + 1)], 1) * 0.0075
+    cap = Capture(
+        I=np.ones((h, w, 3), np.float32),
+        T=np.full((h, w), 0.5, np.float32),
+        channels=["R", "G", "B"],
+        rig=RigParams(sensor_size=(w, h)),
+        measure=measure,
+        measure_times=times,
+    )
+    write_capture(tmp_path / "s.npz", cap)
+    out = subprocess.run(
+        [sys.executable, "-c", _READ_PEAK, str(tmp_path / "s.npz")],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    nbytes, grew = (int(v) for v in out.stdout.split())
+    assert nbytes == measure.nbytes
+    assert grew < 1.4 * nbytes

@@ -134,6 +134,22 @@ class Capture:
         ]
         return replace(self, measure=bins, measure_times=times, meta=meta)
 
+    def time_bin(self, n_bins: int, k: int) -> Capture:
+        """Bin ``k`` of :meth:`time_bins` ``(n_bins)`` alone, as a capture of one
+        measuring image (the same sum, times and subframe count), made without the
+        others."""
+        from dataclasses import replace
+
+        n = self.measure.shape[0]
+        edges = measure_bin_edges(n, n_bins) if n > n_bins else np.arange(n + 1)
+        a, b = int(edges[k]), int(edges[k + 1])
+        meta = dict(self.meta)
+        meta["measure_subframes"] = [int(c) for c in self.measure_counts()[a:b]]
+        part = replace(
+            self, measure=self.measure[a:b], measure_times=self.measure_times[a:b], meta=meta
+        )
+        return part.time_bins(1)
+
     def measure_counts(self) -> np.ndarray:
         """Subframes summed in each measuring image, (B,) int: the metadata's
         ``measure_subframes`` where it fits, else each time bin's length in subframes (a
@@ -248,7 +264,7 @@ class Capture:
             (k for k in data.layers if len(k) >= 3 and k[0] == "M" and k[1:].isdigit()),
             key=lambda k: int(k[1:]),
         )
-        measure = np.stack([data.layers[k] for k in mkeys]) if mkeys else None
+        measure = _stack_layers(data, mkeys, what) if mkeys else None
         mt = meta.get("measure_times")
         measure_times = (
             np.asarray(mt, dtype=np.float64) if mt is not None and measure is not None else None
@@ -272,6 +288,21 @@ class Capture:
         )
         cap.validate(what)
         return cap
+
+
+def _stack_layers(data: Layered, keys: list[str], what: str) -> np.ndarray:
+    """The layers ``keys`` of ``data`` as one (B, H, W, C) array, taken out of ``data``
+    one at a time as they are copied in (the stack never sits beside all of them: a
+    stream of 131 subframes is most of a capture's memory)."""
+    first = data.layers[keys[0]]
+    dtype = np.result_type(*(data.layers[k].dtype for k in keys))
+    for k in keys:
+        if data.layers[k].shape != first.shape:
+            raise FormatError(f"{what}: measuring image {k} is not the size of {keys[0]}")
+    out = np.empty((len(keys), *first.shape), dtype)
+    for b, k in enumerate(keys):
+        out[b] = data.layers.pop(k)
+    return out
 
 
 def resolve_capture_path(path: str | Path) -> str:

@@ -8,10 +8,35 @@ from ...formats.capture import Capture
 
 
 def rate_frames(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Luminance rate of each measuring bin (B, H, W), its noise, and validity."""
+    """Luminance rate of each measuring bin (B, H, W), its noise, and validity (a stream
+    as :func:`stages.flow.motion_bins` bins it). One bin at a time: the per-channel rates
+    and noise (:func:`stages.flow.measure_rates`) of a single bin are the only
+    full-resolution colour arrays made."""
+    from ...flow import motion_bins
+
+    cap = motion_bins(cap)
+    nb, h, w = cap.measure.shape[:3]
+    lum = np.empty((nb, h, w), np.float32)
+    noise = np.empty((nb, h, w), np.float32)
+    valid = np.empty((nb, h, w), bool)
+    for b in range(nb):
+        lum[b], noise[b], valid[b] = (a[0] for a in _bin_rate(cap, b))
+    return lum, noise, valid
+
+
+def _bin_rate(cap: Capture, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`rate_frames` of bin ``b`` of ``cap`` (time bins) alone, each (1, H, W)."""
+    from dataclasses import replace
+
     from ...flow import measure_rates
 
-    rate, sigma, valid = measure_rates(cap)
+    one = replace(
+        cap,
+        measure=cap.measure[b : b + 1],
+        measure_times=cap.measure_times[b : b + 1],
+        meta={**cap.meta, "measure_subframes": [int(cap.measure_counts()[b])]},
+    )
+    rate, sigma, valid = measure_rates(one)
     lum = rate.mean(axis=3)
     noise = sigma.mean(axis=3) / np.float32(np.sqrt(rate.shape[3]))
     return lum, noise, valid
@@ -60,26 +85,18 @@ def work_frames(lum: np.ndarray, noise: np.ndarray, valid: np.ndarray, max_px: i
 
 def binned_work_frames(cap: Capture, n_bins: int, max_px: int):
     """:func:`work_frames` of ``cap``'s stream summed into ``n_bins`` time bins, with the
-    bins' centre times (s). Each bin's rates, noise and validity are made at full
-    resolution one bin at a time and kept at the working scale only (the summed bins are
-    the one full-resolution array of all of them)."""
-    from dataclasses import replace
-
-    binned = cap.time_bins(n_bins)
-    counts = binned.measure_counts()
-    parts = []
-    for b in range(binned.measure.shape[0]):
-        one = replace(
-            binned,
-            measure=binned.measure[b : b + 1],
-            measure_times=binned.measure_times[b : b + 1],
-            meta={**binned.meta, "measure_subframes": [int(counts[b])]},
-        )
-        parts.append(_downsampled(*rate_frames(one), max_px))
+    bins' centre times (s). One bin at a time (:meth:`~stages.formats.capture.Capture.time_bin`):
+    each bin's sum, rates, noise and validity are made at full resolution and kept at the
+    working scale only."""
+    nb = min(n_bins, cap.measure.shape[0])
+    parts, centres = [], []
+    for k in range(nb):
+        one = cap.time_bin(nb, k)
+        parts.append(_downsampled(*_bin_rate(one, 0), max_px))
+        centres.append(float(one.measure_times[0].mean()))
     lum, noise, valid = (np.concatenate([p[i] for p in parts]) for i in range(3))
     lv, slv = log_frames(lum, noise)
-    centres = binned.measure_times.mean(axis=1).astype(np.float64)
-    return lv, slv, valid, parts[0][3], centres
+    return lv, slv, valid, parts[0][3], np.asarray(centres, np.float64)
 
 
 def equalise_all(lv: np.ndarray) -> list[np.ndarray]:
