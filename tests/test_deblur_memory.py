@@ -205,3 +205,20 @@ def test_release_stream_drops_the_stream_and_changes_nothing():
     released, _ = deblur(cap, "vet", release_stream=True)
     assert cap.measure is None
     np.testing.assert_array_equal(released.radiance, kept.radiance)
+
+
+def test_smoothness_normal_product_is_the_adjoint_of_the_weighted_gradient():
+    from stages.deblur.problem import grad, grad_adjoint, smooth_normal
+
+    rng = np.random.default_rng(5)
+    img = rng.random((9, 11, 3))
+    sx, sy = rng.random((9, 11, 3)), rng.random((9, 11, 3))
+    sx[:, -1] = 0
+    sy[-1] = 0
+    gx, gy = grad(img)
+    np.testing.assert_allclose(smooth_normal(img, sx, sy), grad_adjoint(sx * gx, sy * gy))
+    # symmetric: <a, S b> = <S a, b>
+    other = rng.random((9, 11, 3))
+    lhs = float(np.sum(other * smooth_normal(img, sx, sy)))
+    rhs = float(np.sum(smooth_normal(other, sx, sy) * img))
+    assert abs(lhs - rhs) <= 1e-12 * abs(lhs)

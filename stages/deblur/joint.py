@@ -89,9 +89,9 @@ from .problem import (
     build_operators,
     diag_normal,
     grad,
-    grad_adjoint,
     pcg,
     product,
+    smooth_normal,
 )
 from .still_pixels import fuse_still, moving_support
 from .stream import StreamTerm, layer_motion, stream_term
@@ -211,6 +211,7 @@ def solve_image(
     diag = data_diag + dsm.reshape(n, c)
     del dsm
     diag += anchor_w
+    anchored = np.flatnonzero(np.any(anchor_w != 0, axis=1))  # (few: pixels only bounded)
 
     def vet_column(xc: np.ndarray, k: int) -> np.ndarray:
         y = A @ xc
@@ -228,17 +229,15 @@ def solve_image(
                 for k in range(c)
                 for g in range(len(Ab.groups))
             ]
-        img = x.reshape(h, wd, c)
-        gx, gy = grad(img)
-        gx *= sx
-        gy *= sy
-        out = grad_adjoint(gx, gy).reshape(n, c)
-        del gx, gy
+        out = smooth_normal(x.reshape(h, wd, c), sx, sy).reshape(n, c)
         if S is not None:
             out += S.adjoint(ws * S.apply(x))
-        out += anchor_w * x
+        if anchored.size:
+            out[anchored] += anchor_w[anchored] * x[anchored]
+        data = np.zeros((c, n))  # (each channel's pieces add contiguously)
         for k, job in jobs:
-            out[:, k] += job.result()
+            data[k] += job.result()
+        out += data.T
         return out
 
     with ThreadPoolExecutor(max_workers=2) as pool:

@@ -500,6 +500,23 @@ def grad_adjoint(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     return out
 
 
+def smooth_normal(img: np.ndarray, sx: np.ndarray, sy: np.ndarray) -> np.ndarray:
+    """``grad_adjoint(sx * gx, sy * gy)`` for ``gx, gy = grad(img)``, all (H, W, C):
+    the weighted smoothness's normal product, with only the differences' temporaries."""
+    dx = img[:, 1:] - img[:, :-1]
+    dx *= sx[:, :-1]
+    out = np.empty_like(dx, shape=img.shape)
+    out[:, :-1] = -dx
+    out[:, -1] = 0
+    out[:, 1:] += dx
+    del dx
+    dy = img[1:] - img[:-1]
+    dy *= sy[:-1]
+    out[:-1] -= dy
+    out[1:] += dy
+    return out
+
+
 def laplacian(img: np.ndarray) -> np.ndarray:
     """5-point Laplacian with replicated borders, ``(H, W, ...)``."""
     p = np.pad(img, [(1, 1), (1, 1)] + [(0, 0)] * (img.ndim - 2), mode="edge")
