@@ -245,6 +245,8 @@ class Capture:
 
     @classmethod
     def from_layered(cls, data: Layered, what: str = "capture") -> Capture:
+        """The capture a container holds. Its measuring images are taken out of ``data``
+        as they are stacked (a reader's container is done with once read)."""
         meta = dict(data.meta)
         if meta.get("kind") != "capture":
             kind = meta.get("kind") or "not a vet file"
