@@ -44,6 +44,19 @@ SHUTDOWN_LOGGERS = ("distributed", "tornado", "asyncio")
 _threads_limited = False
 
 
+#: The most threads a solve's products use in a process that is not limited.
+MAX_SOLVE_THREADS = 4
+
+
+def solve_threads() -> int:
+    """Threads the deblur's products may use in this process: one in a limited worker
+    (:func:`limit_threads`, or ``OMP_NUM_THREADS=1`` set by whoever started it), else
+    the cores, at most :data:`MAX_SOLVE_THREADS`."""
+    if _threads_limited or os.environ.get("OMP_NUM_THREADS") == "1":
+        return 1
+    return max(1, min(MAX_SOLVE_THREADS, os.cpu_count() or 1))
+
+
 def limit_threads() -> None:
     """Limit this process to one OpenCV / OpenMP / BLAS / OpenImageIO thread (idempotent).
 

@@ -222,3 +222,28 @@ def test_smoothness_normal_product_is_the_adjoint_of_the_weighted_gradient():
     lhs = float(np.sum(other * smooth_normal(img, sx, sy)))
     rhs = float(np.sum(smooth_normal(other, sx, sy) * img))
     assert abs(lhs - rhs) <= 1e-12 * abs(lhs)
+
+
+def test_the_solve_gives_the_same_image_on_one_thread_and_on_several(monkeypatch):
+    # The products' pieces are summed in the same order however many threads make
+    # them: a worker limited to one thread (Dask) gets the same image to the bit.
+    from stages import cluster
+    from stages.deblur import deblur, joint
+
+    cap = simulate(
+        builtin_interior(64, 48),
+        parse_motion("translate:30,0"),
+        RigParams(sensor_size=(64, 48)),
+        seed=2,
+        methods=["vet"],
+        measure_bins=8,
+    )["vet"]
+    got = {}
+    for threads in (1, 3):
+        monkeypatch.setattr(joint, "solve_threads", lambda t=threads: t)
+        got[threads] = deblur(cap)[0].radiance
+    np.testing.assert_array_equal(got[1], got[3])
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert cluster.solve_threads() == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    assert 1 <= cluster.solve_threads() <= cluster.MAX_SOLVE_THREADS

@@ -73,10 +73,12 @@ import logging
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 
 import numpy as np
 import scipy.sparse as sp
 
+from ..cluster import solve_threads
 from .camera_grid import bins_on_vet_grid
 from .joint_options import EDGE_REL_MIN, JointOptions
 from .operator import Layers, motion_layers
@@ -220,7 +222,8 @@ def solve_image(
 
     def apply_h(x: np.ndarray) -> np.ndarray:
         # The data terms' products in pieces (the VET image's and each group of bins',
-        # channel by channel) on two threads: scipy's sparse products release the GIL.
+        # channel by channel) on the process's threads (scipy's sparse products release
+        # the GIL); inline in a worker limited to one.
         xs = [np.ascontiguousarray(x[:, k], np.float32) for k in range(c)]
         jobs = [(k, pool.submit(vet_column, xs[k], k)) for k in range(c)]
         if Ab is not None:
@@ -240,8 +243,23 @@ def solve_image(
         out += data.T
         return out
 
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    threads = solve_threads()
+    with ThreadPoolExecutor(threads) if threads > 1 else nullcontext(_Inline()) as pool:
         return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
+
+
+class _Inline:
+    """A stand-in for an executor that runs each call at once (``submit(...).result()``)."""
+
+    class _Done:
+        def __init__(self, value):
+            self.value = value
+
+        def result(self):
+            return self.value
+
+    def submit(self, fn, *args):
+        return self._Done(fn(*args))
 
 
 def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
