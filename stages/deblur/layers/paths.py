@@ -103,13 +103,21 @@ def _groups(measure: np.ndarray, times: np.ndarray, rig: RigParams, n_groups: in
     comp = np.empty((len(spans), *measure.shape[1:3]), np.float32)
     mids = []
     acc = np.empty(measure.shape[1:3], np.float32)
+    mean = np.empty_like(acc)
+    n_ch = measure.shape[3]
     for g, (a, b) in enumerate(spans):
         acc.fill(0)
         for k in range(a, b):
-            if measure.shape[3] == 1:  # (the mean of one channel is itself)
+            if n_ch == 1:  # (the mean of one channel is itself)
                 acc += measure[k, ..., 0]
-            else:
-                acc += np.asarray(measure[k], np.float32).mean(axis=2)
+                continue
+            # The channels' mean in float32, as ndarray.mean sums them (in order) and
+            # divides, without its strided reduction over the last axis.
+            np.add(measure[k, ..., 0], measure[k, ..., 1], out=mean, dtype=np.float32)
+            for c in range(2, n_ch):
+                np.add(mean, measure[k, ..., c], out=mean, dtype=np.float32)
+            mean /= np.float32(n_ch)
+            acc += mean
         np.maximum(acc, 0.0, out=comp[g])
         comp[g] += np.float32(floor)
         np.log(comp[g], out=comp[g])
