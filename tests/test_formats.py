@@ -55,6 +55,43 @@ def test_exr_and_npz_hold_the_same_content(tmp_path, small_capture):
     assert a.meta == b.meta
 
 
+def test_exr_read_in_row_blocks_or_tiled_gives_the_same_layers(tmp_path, monkeypatch):
+    # A scanline part is decoded a block of rows at a time (a last block shorter); a
+    # tiled file (a vet EXR saved again by another tool) is read whole: the same layers,
+    # HALF kept as float16, each in its channel order.
+    import OpenImageIO as oiio
+
+    from stages.formats import exr
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    cap = simulate(
+        load_scene("builtin:interior", size=(40, 30)),
+        parse_motion("translate:30,0"),
+        RigParams(sensor_size=(40, 30)),
+        seed=1,
+    )["vet"]
+    write_capture(tmp_path / "s.exr", cap)
+    whole = read_layered(tmp_path / "s.exr")
+    assert whole.layers["M00"].dtype == np.float16 and whole.layers["I"].dtype == np.float32
+    monkeypatch.setattr(exr, "READ_ROWS", 7)  # 30 rows: blocks of 7, 7, 7, 7 and 2
+    blocks = read_layered(tmp_path / "s.exr")
+    buf = oiio.ImageBuf(str(tmp_path / "s.exr"))
+    buf.set_write_tiles(16, 16)
+    assert buf.write(str(tmp_path / "t.exr")), buf.geterror()
+    tiled = read_layered(tmp_path / "t.exr")
+    for got in (blocks, tiled):
+        assert got.channels == whole.channels
+        for k, v in whole.layers.items():
+            assert got.layers[k].dtype == v.dtype, k
+            np.testing.assert_array_equal(got.layers[k], v)
+    back = read_capture(tmp_path / "t.exr")  # (HALF: whole numbers to 2048 exactly)
+    np.testing.assert_array_equal(back.measure, read_capture(tmp_path / "s.exr").measure)
+    assert back.measure.shape == cap.measure.shape
+
+
 def test_channel_order_survives_even_though_exr_reorders(tmp_path):
     data = Layered(meta={"kind": "test"})
     arr = np.arange(4 * 5 * 3, dtype=np.float32).reshape(4, 5, 3)

@@ -43,6 +43,9 @@ from .container import (
 
 #: Rows per EXR write (bounds the float32 staging buffer).
 EXR_WRITE_ROWS = 64
+#: Rows per block of a scanline part's read (all its channels decoded once, a block at a
+#: time: :meth:`_Part.layers`).
+READ_ROWS = 32
 #: Most parts (subimages) a vet EXR may hold.
 MAX_PARTS = 16
 #: Characters of metadata per EXR string attribute: tools that turn attributes into text
@@ -243,12 +246,57 @@ class _Part:
             c0 = c1
         return planes
 
+    def layers(self, inp: Any, groups: dict[str, list[tuple[str, int]]]) -> dict[str, np.ndarray]:
+        """Each layer of ``groups`` (``{layer: [(channel, index in the part), ...]}``) as
+        ``(H, W, C)``: float16 where every one of its channels is a kept HALF channel,
+        else float32.
+
+        A scanline part is decoded once, :data:`READ_ROWS` rows of all its channels at a
+        time, each block copied into the layers: no array of all the part's channels is
+        made (a capture's stream is most of the file). A tiled part is read whole.
+        """
+        kept = {lay: all(self.half[i] for _, i in chans) for lay, chans in groups.items()}
+        if self.spec.tile_width:
+            pixels = self.pixels(inp)
+            if isinstance(pixels, list):
+                return {
+                    lay: np.stack([pixels[i] for _, i in chans], axis=2)
+                    for lay, chans in groups.items()
+                }
+            return {
+                lay: np.ascontiguousarray(pixels[:, :, [i for _, i in chans]])
+                for lay, chans in groups.items()
+            }
+        out = {
+            lay: np.empty((self.h, self.w, len(chans)), np.float16 if kept[lay] else np.float32)
+            for lay, chans in groups.items()
+        }
+        fmt = "half" if all(self.half) else "float"  # (HALF values are exact as float)
+        y, z = int(self.spec.y), int(self.spec.z)
+        for r0 in range(0, self.h, READ_ROWS):
+            r1 = min(self.h, r0 + READ_ROWS)
+            block = inp.read_scanlines(self.index, 0, y + r0, y + r1, z, 0, self.nch, fmt)
+            if block is None:
+                self._unreadable(inp)
+            # Channel planes first (one transposing copy): copying a few channels at a
+            # time straight out of the interleaved block is several times slower.
+            planes = np.asarray(block).reshape(-1, self.nch).T.copy()
+            del block
+            for lay, chans in groups.items():
+                dest = out[lay][r0:r1].reshape(-1, len(chans))
+                for j, (_, i) in enumerate(chans):
+                    dest[:, j] = planes[i]
+        return out
+
+    def _unreadable(self, inp: Any) -> None:
+        msg = _last_error(inp.geterror, "truncated?")
+        where = f" of part {self.index}" if self.index else ""
+        raise FormatError(f"{self.what}: pixel data{where} unreadable ({msg})")
+
     def _read(self, inp: Any, c0: int, c1: int, fmt: str) -> np.ndarray:
         pixels = inp.read_image(self.index, 0, c0, c1, fmt)
         if pixels is None:
-            msg = _last_error(inp.geterror, "truncated?")
-            where = f" of part {self.index}" if self.index else ""
-            raise FormatError(f"{self.what}: pixel data{where} unreadable ({msg})")
+            self._unreadable(inp)
         return np.asarray(pixels, dtype=np.float16 if fmt == "half" else np.float32)
 
 
@@ -306,7 +354,7 @@ def _read_exr(inp: Any, path: str | Path, what: str) -> Layered:
     data = Layered(meta=meta)
     order = meta.get("channel_order", {}) if isinstance(meta.get("channel_order"), dict) else {}
     for head, groups in zip(heads, grouped, strict=True):
-        pixels = head.pixels(inp)
+        ordered: dict[str, list[tuple[str, int]]] = {}
         for layer, chans in groups.items():
             wanted = order.get(layer)
             if (
@@ -316,9 +364,8 @@ def _read_exr(inp: Any, path: str | Path, what: str) -> Layered:
             ):
                 idx = dict(chans)
                 chans = [(c, idx[c]) for c in wanted]
-            if isinstance(pixels, list):
-                data.layers[layer] = np.stack([pixels[i] for _, i in chans], axis=2)
-            else:
-                data.layers[layer] = np.ascontiguousarray(pixels[:, :, [i for _, i in chans]])
-            data.channels[layer] = [c for c, _ in chans]
+            ordered[layer] = chans
+        for layer, array in head.layers(inp, ordered).items():
+            data.layers[layer] = array
+            data.channels[layer] = [c for c, _ in ordered[layer]]
     return data
