@@ -56,9 +56,10 @@ def test_exr_and_npz_hold_the_same_content(tmp_path, small_capture):
 
 
 def test_exr_read_in_row_blocks_or_tiled_gives_the_same_layers(tmp_path, monkeypatch):
-    # A scanline part is decoded a block of rows at a time (a last block shorter); a
-    # tiled file (a vet EXR saved again by another tool) is read whole: the same layers,
-    # HALF kept as float16, each in its channel order.
+    # A stream's measuring images are a HALF part of their own; a scanline part is
+    # decoded a block of rows at a time (a last block shorter); a tiled file (a vet EXR
+    # saved again by another tool) is read whole: the same layers, each in its type and
+    # channel order.
     import OpenImageIO as oiio
 
     from stages.formats import exr
@@ -73,23 +74,33 @@ def test_exr_read_in_row_blocks_or_tiled_gives_the_same_layers(tmp_path, monkeyp
         RigParams(sensor_size=(40, 30)),
         seed=1,
     )["vet"]
+    assert cap.measure.dtype == np.int16
     write_capture(tmp_path / "s.exr", cap)
+    inp = oiio.ImageInput.open(str(tmp_path / "s.exr"))
+    assert inp.seek_subimage(1, 0) and inp.spec().get_string_attribute("oiio:subimagename") == (
+        "measure"
+    )
+    assert str(inp.spec().format) == "half" and inp.spec().channelnames[0] == "M00.R"
+    inp.close()
     whole = read_layered(tmp_path / "s.exr")
     assert whole.layers["M00"].dtype == np.float16 and whole.layers["I"].dtype == np.float32
+    np.testing.assert_array_equal(whole.layers["M00"], cap.measure[0].astype(np.float16))
     monkeypatch.setattr(exr, "READ_ROWS", 7)  # 30 rows: blocks of 7, 7, 7, 7 and 2
     blocks = read_layered(tmp_path / "s.exr")
-    buf = oiio.ImageBuf(str(tmp_path / "s.exr"))
+    # One part (measuring images in float32 stay with the others), saved tiled.
+    cap.measure = cap.measure.astype(np.float32)
+    write_capture(tmp_path / "one.exr", cap)
+    buf = oiio.ImageBuf(str(tmp_path / "one.exr"))
     buf.set_write_tiles(16, 16)
     assert buf.write(str(tmp_path / "t.exr")), buf.geterror()
-    tiled = read_layered(tmp_path / "t.exr")
-    for got in (blocks, tiled):
-        assert got.channels == whole.channels
-        for k, v in whole.layers.items():
+    for got, want in (
+        (blocks, whole),
+        (read_layered(tmp_path / "t.exr"), read_layered(tmp_path / "one.exr")),
+    ):
+        assert got.channels == want.channels
+        for k, v in want.layers.items():
             assert got.layers[k].dtype == v.dtype, k
             np.testing.assert_array_equal(got.layers[k], v)
-    back = read_capture(tmp_path / "t.exr")  # (HALF: whole numbers to 2048 exactly)
-    np.testing.assert_array_equal(back.measure, read_capture(tmp_path / "s.exr").measure)
-    assert back.measure.shape == cap.measure.shape
 
 
 def test_channel_order_survives_even_though_exr_reorders(tmp_path):
@@ -242,3 +253,27 @@ def test_metadata_is_json_serialisable_and_complete(tmp_path, small_capture):
         "measure_times",
     ):
         assert key in meta
+
+
+def test_a_capture_with_its_stream_in_the_main_part_still_reads(tmp_path, monkeypatch):
+    # Earlier vet wrote a stream of the sensor's size into part 0, beside float layers.
+    from stages.formats import exr
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    cap = simulate(
+        load_scene("builtin:interior", size=(24, 16)),
+        parse_motion("none"),
+        RigParams(sensor_size=(24, 16)),
+        seed=2,
+    )["vet"]
+    write_capture(tmp_path / "new.exr", cap)
+    monkeypatch.setattr(exr, "_exr_parts", lambda data: data.parts())
+    write_capture(tmp_path / "old.exr", cap)
+    old, new = read_capture(tmp_path / "old.exr"), read_capture(tmp_path / "new.exr")
+    assert old.measure.dtype == new.measure.dtype == np.float16
+    np.testing.assert_array_equal(old.measure, new.measure)
+    np.testing.assert_array_equal(old.I, new.I)
+    assert old.meta == new.meta

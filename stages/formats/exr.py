@@ -94,7 +94,7 @@ def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | N
     in further parts (module docstring). Raises OutputError on failure."""
     what = what or str(path)
     oiio = _oiio()
-    parts = data.parts()
+    parts = _exr_parts(data)
     specs = [_part_spec(oiio, data, names, compression) for names in parts]
     main = specs[0]
     main.attribute(KIND_ATTR, str(data.meta.get("kind", "")))
@@ -122,12 +122,48 @@ def write_exr(path: Path, data: Layered, compression: str = "zip", what: str | N
         out.close()
 
 
+def _exr_parts(data: Layered) -> list[list[str]]:
+    """The layer names of each part: :meth:`Layered.parts`, with measuring images of
+    the main size that are all compact moved to a part of their own after the first (so
+    that every part of a capture with a stream is of one kind: its HALF channels are
+    written as they are, with no conversion of mixed channel formats)."""
+    parts = data.parts()
+    main = parts[0]
+    compact = [
+        n
+        for n in main
+        if MEASURING_LAYER.fullmatch(n) and data.layers[n].dtype in COMPACT_DTYPES
+    ]
+    measuring = [n for n in main if MEASURING_LAYER.fullmatch(n)]
+    if compact and compact == measuring and len(compact) < len(main):
+        parts = [[n for n in main if n not in set(compact)], compact, *parts[1:]]
+    return parts
+
+
+#: float16 of each int16, indexed by its bits as uint16 (exact: numpy's own conversion).
+_HALF_OF_INT16 = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16).view(np.int16).astype(
+    np.float16
+)
+
+
+def _as_half(a: np.ndarray) -> np.ndarray:
+    """A compact layer's rows as float16 (int16 through :data:`_HALF_OF_INT16`)."""
+    if a.dtype == np.int16:
+        return _HALF_OF_INT16[a.view(np.uint16)]
+    return a.astype(np.float16, copy=False)
+
+
 def _write_part(out: Any, arrays: list[np.ndarray], what: str) -> None:
-    """A band of rows at a time: the float32 staging copy stays small."""
+    """A band of rows at a time: the staging copy stays small. A part of compact layers
+    alone (a HALF part) is staged as float16, any other as float32."""
     h = arrays[0].shape[0]
+    half = all(a.dtype in COMPACT_DTYPES for a in arrays)
     for y0 in range(0, h, EXR_WRITE_ROWS):
         y1 = min(h, y0 + EXR_WRITE_ROWS)
-        band = np.concatenate([a[y0:y1].astype(np.float32) for a in arrays], axis=2)
+        if half:
+            band = np.concatenate([_as_half(a[y0:y1]) for a in arrays], axis=2)
+        else:
+            band = np.concatenate([a[y0:y1].astype(np.float32) for a in arrays], axis=2)
         if not out.write_scanlines(y0, y1, 0, np.ascontiguousarray(band)):
             raise OutputError(f"{what}: cannot write EXR ({_last_error(out.geterror, '?')})")
 
