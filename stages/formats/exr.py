@@ -130,19 +130,18 @@ def _exr_parts(data: Layered) -> list[list[str]]:
     parts = data.parts()
     main = parts[0]
     compact = [
-        n
-        for n in main
-        if MEASURING_LAYER.fullmatch(n) and data.layers[n].dtype in COMPACT_DTYPES
+        n for n in main if MEASURING_LAYER.fullmatch(n) and data.layers[n].dtype in COMPACT_DTYPES
     ]
     measuring = [n for n in main if MEASURING_LAYER.fullmatch(n)]
     if compact and compact == measuring and len(compact) < len(main):
-        parts = [[n for n in main if n not in set(compact)], compact, *parts[1:]]
+        moved = set(compact)
+        parts = [[n for n in main if n not in moved], compact, *parts[1:]]
     return parts
 
 
 #: float16 of each int16, indexed by its bits as uint16 (exact: numpy's own conversion).
-_HALF_OF_INT16 = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16).view(np.int16).astype(
-    np.float16
+_HALF_OF_INT16 = (
+    np.arange(1 << 16, dtype=np.uint32).astype(np.uint16).view(np.int16).astype(np.float16)
 )
 
 
