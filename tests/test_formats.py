@@ -55,6 +55,17 @@ def test_exr_and_npz_hold_the_same_content(tmp_path, small_capture):
     assert a.meta == b.meta
 
 
+def _stream_capture(size: tuple[int, int], motion: str, seed: int):
+    """A simulated capture of builtin:interior that keeps its whole stream (int16)."""
+    from stages.motion import parse_motion
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    scene = load_scene("builtin:interior", size=size)
+    return simulate(scene, parse_motion(motion), RigParams(sensor_size=size), seed=seed)["vet"]
+
+
 def test_exr_read_in_row_blocks_or_tiled_gives_the_same_layers(tmp_path, monkeypatch):
     # A stream's measuring images are a HALF part of their own; a scanline part is
     # decoded a block of rows at a time (a last block shorter); a tiled file (a vet EXR
@@ -63,17 +74,8 @@ def test_exr_read_in_row_blocks_or_tiled_gives_the_same_layers(tmp_path, monkeyp
     import OpenImageIO as oiio
 
     from stages.formats import exr
-    from stages.motion import parse_motion
-    from stages.rig import RigParams
-    from stages.scenes import load_scene
-    from stages.simulate import simulate
 
-    cap = simulate(
-        load_scene("builtin:interior", size=(40, 30)),
-        parse_motion("translate:30,0"),
-        RigParams(sensor_size=(40, 30)),
-        seed=1,
-    )["vet"]
+    cap = _stream_capture((40, 30), "translate:30,0", seed=1)
     assert cap.measure.dtype == np.int16
     write_capture(tmp_path / "s.exr", cap)
     inp = oiio.ImageInput.open(str(tmp_path / "s.exr"))
@@ -258,17 +260,8 @@ def test_metadata_is_json_serialisable_and_complete(tmp_path, small_capture):
 def test_a_capture_with_its_stream_in_the_main_part_still_reads(tmp_path, monkeypatch):
     # Earlier vet wrote a stream of the sensor's size into part 0, beside float layers.
     from stages.formats import exr
-    from stages.motion import parse_motion
-    from stages.rig import RigParams
-    from stages.scenes import load_scene
-    from stages.simulate import simulate
 
-    cap = simulate(
-        load_scene("builtin:interior", size=(24, 16)),
-        parse_motion("none"),
-        RigParams(sensor_size=(24, 16)),
-        seed=2,
-    )["vet"]
+    cap = _stream_capture((24, 16), "none", seed=2)
     write_capture(tmp_path / "new.exr", cap)
     monkeypatch.setattr(exr, "_exr_parts", lambda data: data.parts())
     write_capture(tmp_path / "old.exr", cap)
