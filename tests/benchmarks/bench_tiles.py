@@ -5,7 +5,7 @@ reporting its wall time, peak memory (ru_maxrss of the process and of its worker
 processes), the dark-pixel RMS error in stops against the truth (as ``vet evaluate``
 scores) and the same error split into a band of 8 px on each side of every tile border
 (the seams) and the rest; the one-piece solve is scored on the same bands. Configurations: one solve (frames up to 1.3 MP only), tiles
-in-process (the solver's own two threads), tiles on a Dask cluster of 1 worker and on one of 2
+in-process (the solver's own threads, one a core), tiles on a Dask cluster of 1 worker and on one of 2
 workers (one thread each, as ``vet deblur -j N`` runs them), so that "2 workers against 1" compares
 the same engine.
 
