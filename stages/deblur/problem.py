@@ -336,7 +336,8 @@ def product(M: sp.spmatrix, x: np.ndarray) -> np.ndarray:
 
 
 #: Groups the measuring bins' operators are stacked into (:class:`StackedOperator`):
-#: enough pieces of work, with the VET image's, to keep a few threads busy (:func:`stages.cluster.solve_threads`).
+#: enough pieces of work, with the VET image's, to keep a few threads busy
+#: (:func:`stages.cluster.solve_threads`).
 BIN_GROUPS = 4
 
 
