@@ -84,9 +84,15 @@ print(cap.measure.nbytes, peak() - before)
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="needs Linux's /proc")
-def test_reading_a_stream_holds_its_frames_once(tmp_path):
+@pytest.mark.parametrize("ext", ["npz", "exr"])
+def test_reading_a_stream_holds_its_frames_once(tmp_path, ext):
     # The measuring images are stacked as they are read out, not copied beside all of
-    # them: reading a stream costs about its own size, not twice it.
+    # them (and an EXR's channels are decoded a block of rows at a time, not all into one
+    # array first): reading a stream costs about its own size, not twice it. (One malloc
+    # arena: the figure is what vet holds, not what OpenEXR's decoding threads' arenas
+    # keep of freed blocks. An EXR's layers are stacked from the heap, which keeps the
+    # freed ones while the stack fills: about 1.66x here, 2.38x before.)
+    import os
     import subprocess
     import sys
 
@@ -104,13 +110,14 @@ def test_reading_a_stream_holds_its_frames_once(tmp_path):
         measure=measure,
         measure_times=times,
     )
-    write_capture(tmp_path / "s.npz", cap)
+    write_capture(tmp_path / f"s.{ext}", cap)
     out = subprocess.run(
-        [sys.executable, "-c", _READ_PEAK, str(tmp_path / "s.npz")],
+        [sys.executable, "-c", _READ_PEAK, str(tmp_path / f"s.{ext}")],
         capture_output=True,
         text=True,
         check=True,
+        env={**os.environ, "MALLOC_ARENA_MAX": "1"},
     )
     nbytes, grew = (int(v) for v in out.stdout.split())
     assert nbytes == measure.nbytes
-    assert grew < 1.4 * nbytes
+    assert grew < {"npz": 1.4, "exr": 1.9}[ext] * nbytes
