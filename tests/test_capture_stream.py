@@ -121,3 +121,21 @@ def test_reading_a_stream_holds_its_frames_once(tmp_path, ext):
     nbytes, grew = (int(v) for v in out.stdout.split())
     assert nbytes == measure.nbytes
     assert grew < {"npz": 1.4, "exr": 1.9}[ext] * nbytes
+
+
+def test_measuring_images_of_two_sizes_are_refused_in_one_line():
+    from stages.errors import FormatError
+    from stages.formats.capture import Capture
+
+    cap = Capture(
+        I=np.ones((6, 8, 1), np.float32),
+        T=np.full((6, 8), 0.5, np.float32),
+        channels=["Y"],
+        rig=RigParams(sensor_size=(8, 6)),
+        measure=np.ones((2, 6, 8, 1), np.float32),
+        measure_times=np.array([[0.0, 0.1], [0.1, 0.2]]),
+    )
+    data = cap.to_layered()
+    data.layers["M01"] = np.ones((6, 7, 1), np.float32)  # (a container made in memory)
+    with pytest.raises(FormatError, match=r"^mem: measuring image M01 is not the size of M00$"):
+        Capture.from_layered(data, "mem")

@@ -129,13 +129,14 @@ def _exr_parts(data: Layered) -> list[list[str]]:
     written as they are, with no conversion of mixed channel formats)."""
     parts = data.parts()
     main = parts[0]
-    compact = [
-        n for n in main if MEASURING_LAYER.fullmatch(n) and data.layers[n].dtype in COMPACT_DTYPES
-    ]
     measuring = [n for n in main if MEASURING_LAYER.fullmatch(n)]
-    if compact and compact == measuring and len(compact) < len(main):
-        moved = set(compact)
-        parts = [[n for n in main if n not in moved], compact, *parts[1:]]
+    if (
+        measuring
+        and len(measuring) < len(main)
+        and all(data.layers[n].dtype in COMPACT_DTYPES for n in measuring)
+    ):
+        moved = set(measuring)
+        parts = [[n for n in main if n not in moved], measuring, *parts[1:]]
     return parts
 
 
