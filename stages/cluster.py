@@ -21,10 +21,14 @@ import contextlib
 import logging
 import os
 import time
-from collections.abc import Iterator
-from typing import Any
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, TypeVar
 
 from .errors import VetError
+
+T = TypeVar("T")
 
 #: Environment for worker processes: one thread each for OpenMP, BLAS and OpenCV.
 WORKER_ENV = {
@@ -55,6 +59,27 @@ def solve_threads() -> int:
     if _threads_limited or os.environ.get("OMP_NUM_THREADS") == "1":
         return 1
     return max(1, min(MAX_SOLVE_THREADS, os.cpu_count() or 1))
+
+
+def in_order(fn: Callable[[int], T], n: int, ahead: int = 1) -> Iterator[T]:
+    """``fn(0), ..., fn(n - 1)``, handed out in that order, computed on
+    :func:`solve_threads` threads with at most ``ahead`` calls per thread running or done
+    beyond the one handed out (numpy, OpenCV and zlib release the GIL on large arrays, so
+    independent pieces of work, such as a stream's time bins, share the cores; few are
+    held at once). Inline when one thread is allowed."""
+    threads = min(solve_threads(), n)
+    if threads <= 1:
+        yield from (fn(k) for k in range(n))
+        return
+    first = min(n, threads * max(1, ahead))
+    with ThreadPoolExecutor(threads) as ex:
+        pending = deque(ex.submit(fn, k) for k in range(first))
+        for k in range(first, n):
+            done = pending.popleft().result()
+            pending.append(ex.submit(fn, k))
+            yield done
+        while pending:
+            yield pending.popleft().result()
 
 
 def limit_threads() -> None:

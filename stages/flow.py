@@ -68,11 +68,17 @@ def measure_rates(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rate = np.empty(cap.measure.shape, np.float32)
     sigma = np.empty(cap.measure.shape, np.float32)
     valid = np.empty(cap.measure.shape[:3], bool)
-    for b in range(cap.measure.shape[0]):  # one bin at a time: float64 temporaries of one
+    for b in range(cap.measure.shape[0]):  # one bin at a time: one float64 temporary
         e = cap.measure[b] / np.float32(g) - np.float32(dark[b])
-        var = np.maximum(e + np.full(shape, dark[b]), 0) + np.full(shape, read_var[b])
-        rate[b] = e / np.full(shape, scale[b])
-        sigma[b] = np.sqrt(var) / np.full(shape, scale[b])
+        var = e.astype(np.float64)
+        var += dark[b]
+        np.maximum(var, 0, out=var)
+        var += read_var[b]
+        # (float64 quotients rounded to float32, as assigning them would)
+        np.divide(e, np.full(shape, scale[b]), out=rate[b], casting="same_kind")
+        np.sqrt(var, out=var)
+        np.divide(var, np.full(shape, scale[b]), out=sigma[b], casting="same_kind")
+        del var
         valid[b] = ~bin_may_clip(cap.measure[b] / np.float32(n_sub[b]), rig)
     return rate, sigma, valid
 

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
+from ..cluster import in_order
 from ..errors import FormatError, InputError
 from ..rig import RigParams
 from .layered import Layered, read_layered, write_layered
@@ -123,8 +124,13 @@ class Capture:
         edges = measure_bin_edges(self.measure.shape[0], n_bins)
         # Filled in place: no list of bins beside their stacked copy.
         bins = np.empty((len(edges) - 1, *self.measure.shape[1:]), np.float32)
-        for k, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+
+        def fill(k: int) -> None:
+            a, b = edges[k], edges[k + 1]
             np.sum(self.measure[a:b], axis=0, dtype=np.float32, out=bins[k])
+
+        for _ in in_order(fill, len(bins)):  # (the bins on the process's threads)
+            pass
         mt = np.asarray(self.measure_times, np.float64)
         times = np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
         n = self.measure_counts()

@@ -24,14 +24,17 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 import tokenize
 import zipfile
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..cluster import in_order, solve_threads
 from ..errors import FormatError
 from . import limits, schema
 from .container import (
@@ -229,12 +232,47 @@ def read_npz(path: Path, what: str | None = None) -> Layered:
             total += math.prod(shape) * (dtype.itemsize if kept else max(dtype.itemsize, 4))
         limits.check_declared(total, on_disk, what)
         data = Layered(meta=meta)
-        for name, (info, _, _) in layers.items():
-            arr = _npz_array(zf, info, what)
+        infos_in_order = [info for info, _, _ in layers.values()]
+        for name, arr in zip(layers, _npz_arrays(path, zf, infos_in_order, what), strict=True):
             keep = arr.dtype if arr.dtype in COMPACT_DTYPES else np.float32
             data.layers[name] = np.ascontiguousarray(arr, dtype=keep)
             data.channels[name] = [str(c) for c in channels[name]]
     return data
+
+
+def _npz_arrays(
+    path: Path, zf: zipfile.ZipFile, infos: list[zipfile.ZipInfo], what: str
+) -> Iterator[np.ndarray]:
+    """The members ``infos`` of the npz at ``path`` (open as ``zf``) read as arrays, in
+    order. On :func:`~stages.cluster.solve_threads` threads, each with a zip handle of its
+    own (zlib inflates without holding the GIL), at most two members per thread ahead of
+    the one handed out, so a file of many layers (a capture's stream) is inflated on every
+    core the process may use with a few layers in flight."""
+    if min(solve_threads(), len(infos)) <= 1:
+        for info in infos:
+            yield _npz_array(zf, info, what)
+        return
+    local = threading.local()
+    handles: list[zipfile.ZipFile] = []
+    lock = threading.Lock()
+
+    def one(info: zipfile.ZipInfo) -> np.ndarray:
+        z = getattr(local, "zf", None)
+        if z is None:
+            try:
+                z = zipfile.ZipFile(path)
+            except (zipfile.BadZipFile, OSError, ValueError) as exc:
+                raise FormatError(f"{what}: cannot reopen the .npz ({exc})") from None
+            local.zf = z
+            with lock:
+                handles.append(z)
+        return _npz_array(z, info, what)
+
+    try:
+        yield from in_order(lambda k: one(infos[k]), len(infos), ahead=2)
+    finally:
+        for z in handles:
+            z.close()
 
 
 # --- dispatch ------------------------------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...cluster import in_order
 from ...formats.capture import Capture
 
 
@@ -19,8 +20,8 @@ def rate_frames(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     lum = np.empty((nb, h, w), np.float32)
     noise = np.empty((nb, h, w), np.float32)
     valid = np.empty((nb, h, w), bool)
-    for b in range(nb):
-        lum[b], noise[b], valid[b] = (a[0] for a in _bin_rate(cap, b))
+    for b, parts in enumerate(in_order(lambda b: _bin_rate(cap, b), nb)):
+        lum[b], noise[b], valid[b] = (a[0] for a in parts)
     return lum, noise, valid
 
 
@@ -89,11 +90,15 @@ def binned_work_frames(cap: Capture, n_bins: int, max_px: int):
     each bin's sum, rates, noise and validity are made at full resolution and kept at the
     working scale only."""
     nb = min(n_bins, cap.measure.shape[0])
-    parts, centres = [], []
-    for k in range(nb):
+
+    def work(k: int):
         one = cap.time_bin(nb, k)
-        parts.append(_downsampled(*_bin_rate(one, 0), max_px))
-        centres.append(float(one.measure_times[0].mean()))
+        return _downsampled(*_bin_rate(one, 0), max_px), float(one.measure_times[0].mean())
+
+    parts, centres = [], []
+    for part, centre in in_order(work, nb):
+        parts.append(part)
+        centres.append(centre)
     lum, noise, valid = (np.concatenate([p[i] for p in parts]) for i in range(3))
     lv, slv = log_frames(lum, noise)
     return lv, slv, valid, parts[0][3], np.asarray(centres, np.float64)

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...cluster import in_order
 from ...rig import RigParams
 from ..operator import Layers
 
@@ -101,12 +102,12 @@ def _groups(measure: np.ndarray, times: np.ndarray, rig: RigParams, n_groups: in
     per = k_n / max(len(spans), 1)
     floor = 3.0 * rig.gain_dn_per_e * float(rig.read_noise_e) * np.sqrt(per) + 1.0
     comp = np.empty((len(spans), *measure.shape[1:3]), np.float32)
-    mids = []
-    acc = np.empty(measure.shape[1:3], np.float32)
-    mean = np.empty_like(acc)
     n_ch = measure.shape[3]
-    for g, (a, b) in enumerate(spans):
-        acc.fill(0)
+
+    def fill(g: int) -> None:
+        a, b = spans[g]
+        acc = np.zeros(measure.shape[1:3], np.float32)
+        mean = np.empty_like(acc)
         for k in range(a, b):
             if n_ch == 1:  # (the mean of one channel is itself)
                 acc += measure[k, ..., 0]
@@ -121,7 +122,10 @@ def _groups(measure: np.ndarray, times: np.ndarray, rig: RigParams, n_groups: in
         np.maximum(acc, 0.0, out=comp[g])
         comp[g] += np.float32(floor)
         np.log(comp[g], out=comp[g])
-        mids.append(0.5 * (float(times[a][0]) + float(times[b - 1][1])))
+
+    for _ in in_order(fill, len(spans)):  # (the groups on the process's threads)
+        pass
+    mids = [0.5 * (float(times[a][0]) + float(times[b - 1][1])) for a, b in spans]
     return comp, np.asarray(mids), float(floor)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...cluster import in_order
 from .alignment import layer_cost
 from .bins import equalise_all
 
@@ -35,18 +36,25 @@ def refine_velocity(
     total = float(wt_c.sum())
     cache: dict[tuple[float, float], float] = {}
 
-    def cost(c: np.ndarray) -> float:
-        key = (round(float(c[0]), 6), round(float(c[1]), 6))
-        if key not in cache:
-            cache[key] = float(
-                (layer_cost(lv_c, slv_c, c, centres, trunc=25.0) * wt_c).sum() / total
-            )
-        return cache[key]
+    def key(c: np.ndarray) -> tuple[float, float]:
+        return (round(float(c[0]), 6), round(float(c[1]), 6))
+
+    def costs(cands: list[np.ndarray]) -> list[float]:
+        """The cost of each candidate; those not yet known on the process's threads."""
+        todo = list({key(c): c for c in cands if key(c) not in cache}.values())
+
+        def one(i: int) -> float:
+            c = todo[i]
+            return float((layer_cost(lv_c, slv_c, c, centres, trunc=25.0) * wt_c).sum() / total)
+
+        for c, val in zip(todo, in_order(one, len(todo)), strict=True):
+            cache[key(c)] = val
+        return [cache[key(c)] for c in cands]
 
     grid = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
     for st in steps:
         for _ in range(max_moves):
-            vals = [cost(v + st * np.array(d)) for d in grid]
+            vals = costs([v + st * np.array(d) for d in grid])
             dx, dy = grid[int(np.argmin(vals))]
             if dx == 0 and dy == 0:
                 break
