@@ -425,14 +425,32 @@ def timing_rng(seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), 0x716]))
 
 
-def subframe_clock(rig: RigParams, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def subframe_clock(
+    rig: RigParams, rng: np.random.Generator, subframes: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Actual start times (s, after the VET exposure's start) of measuring subframes
     ``0 .. K + latency + 1`` (offset plus jitter: the LCoS applies a closure at the start
-    of a subframe), and which of the K subframes are dropped, bool (K,)."""
-    k = rig.n_subframes
+    of a subframe), and which of the K subframes are dropped, bool (K,). ``K`` is the
+    frame's ``n_subframes``, or ``subframes`` for a clock run that long without a break."""
+    k = rig.n_subframes if subframes is None else int(subframes)
     n = k + rig.latency_subframes + 2
     starts = rig.trigger_offset_s + np.arange(n) * rig.subframe_s
     if rig.trigger_jitter_s > 0:
         starts = starts + rng.normal(0.0, rig.trigger_jitter_s, n)
     dropped = rng.random(k) < rig.drop_rate if rig.drop_rate > 0 else np.zeros(k, bool)
     return starts, dropped
+
+
+#: Stream (added to the seed) of the emulated measurement camera's free-running clock.
+FREE_RUN_STREAM = 0x7C1
+
+
+def free_running_clock(
+    rig: RigParams, subframes: int, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """The emulated measurement camera's trigger clock run without a break for
+    ``subframes`` subframes (:func:`subframe_clock`: the rig's offset, jitter and drops,
+    seeded by ``seed`` on its own stream): start times (subframes,) float64 s and which
+    subframes drop, (subframes,) bool."""
+    starts, dropped = subframe_clock(rig, timing_rng(seed + FREE_RUN_STREAM), subframes)
+    return starts[:subframes], dropped

@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from stages.devices.cameras import EmulatedMeasurementCamera, EmulatedVETCamera, OpenCVCamera
+from stages.devices.cameras import OpenCVCamera
+from stages.devices.emulated_cameras import EmulatedMeasurementCamera, EmulatedVETCamera
 from stages.errors import DeviceError, InputError
 from stages.motion import parse_motion
 from stages.rig import RigParams

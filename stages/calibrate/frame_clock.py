@@ -203,12 +203,12 @@ def emulated_timestamps(
     rig: RigParams, frames: int = EMULATED_FRAMES, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Frame ids and timestamps the emulated measurement camera gives over ``frames``
-    subframes of its clock run without a break (:func:`stages.optics.subframe_clock`
-    on a frame of that many subframes: the rig's trigger offset, jitter and drops):
+    subframes of its clock run without a break (:func:`stages.optics.free_running_clock`:
+    the rig's trigger offset, jitter and drops), as its free run
+    (:meth:`~stages.devices.cameras.EmulatedMeasurementCamera.free_run`) delivers them:
     ``(ids, t)``, (M,) int64 and (M,) float64 s, the dropped frames left out."""
-    from ..optics import subframe_clock, timing_rng
+    from ..optics import free_running_clock
 
-    long = rig.replace(frame_s=frames * rig.subframe_s + rig.trigger_offset_s)
-    starts, dropped = subframe_clock(long, timing_rng(seed + 0x7C1))
+    starts, dropped = free_running_clock(rig, frames, seed)
     ids = np.arange(frames, dtype=np.int64)
-    return ids[~dropped], starts[:frames][~dropped]
+    return ids[~dropped], starts[~dropped]

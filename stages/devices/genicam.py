@@ -239,6 +239,24 @@ class GenICamCamera(Camera):
                 self.open()
             self._cam.software_trigger()
 
+    def set_exposure_s(self, seconds: float) -> float | None:
+        """Set ``ExposureTime`` to ``seconds`` and return what the camera reads back (s;
+        it rounds); None where the camera has no settable exposure time or ``seconds``
+        is outside its bounds."""
+        if not self._is_open:
+            self.open()
+        cam = self._cam
+        if not cam.is_exposure_time_available():
+            return None
+        us = float(seconds) * 1e6
+        lo, hi = cam.get_exposure_time_bounds()
+        if not lo <= us <= hi:
+            return None
+        cam.set_exposure_time(us)
+        got = float(cam.get_exposure_time())
+        self.settings["exposure_us"] = got
+        return got * 1e-6
+
     def _wait_s(self) -> float:
         s = self.settings
         period = 1.0 / s["frame_rate_hz"] if s.get("frame_rate_hz") else 0.0

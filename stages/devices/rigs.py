@@ -59,7 +59,8 @@ import numpy as np
 from ..errors import InputError
 from ..formats.schema import check_rig_file
 from ..rig import RigParams
-from .cameras import Camera, EmulatedMeasurementCamera, EmulatedVETCamera, OpenCVCamera
+from .cameras import Camera, OpenCVCamera
+from .emulated_cameras import EmulatedMeasurementCamera, EmulatedVETCamera
 from .lcos import LCoSDevice, SerialLCoS
 
 
