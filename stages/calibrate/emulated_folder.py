@@ -22,19 +22,16 @@ bias measures):
 from __future__ import annotations
 
 import logging
-import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
 from ..rig import RigParams
 from .acquire import AcquisitionSettings, acquire_frames
 from .calfile import Calibration
 from .emulated import open_sim_calibration_rig
+from .folder_out import build_folder, frame_stem, save_frame, write_rig_toml
 from .frame_clock import TIMESTAMPS_FILE, emulated_timestamps, write_timestamps
 from .frames import ProgressFn
 from .meas_flat import measure_part_errors
@@ -44,7 +41,6 @@ from .parts import (
     find_corners,
     mapping_error_px,
 )
-from .recorded import LAYOUT
 
 log = logging.getLogger("vet.calibrate")
 
@@ -52,20 +48,14 @@ log = logging.getLogger("vet.calibrate")
 SWITCH_SUBFRAME = 20
 #: Frames recorded per window of the switching series.
 SWITCH_FRAMES = 4
+#: The switching series' windows: from this long before ``c tau`` (s) ...
+SWITCH_BEFORE_S = 2e-3
+#: ... to this long after it (s) ...
+SWITCH_AFTER_S = 5e-3
+#: ... this far apart (s).
+SWITCH_STEP_S = 2.5e-4
 #: Target poses: board square (px) and shift (x, y) px from the centre.
 TARGET_POSES = ((12, (0.0, 0.0)), (12, (5.3, 3.7)))
-#: rig.toml [params] written: what a reader needs that is not measured.
-_PARAMS = (
-    "sensor_size",
-    "lcos_cells",
-    "frame_s",
-    "subframe_s",
-    "full_well_e",
-    "read_noise_e",
-    "adc_bits",
-    "black_level_dn",
-    "latency_subframes",
-)
 
 
 def write_emulated_folder(
@@ -83,9 +73,8 @@ def write_emulated_folder(
 
     ``size`` (W, H), ``overrides``, ``seed``, ``profile``: the emulated rig as for
     :func:`.emulated.calibrate_sim`; ``settings``: the acquisition's exposures and
-    frame counts. The folder is written whole or not at all (built beside it, then moved
-    in). An existing folder that holds anything is refused unless ``force``; then the
-    files of the layout (and ``rig.toml``) already there are replaced, others kept.
+    frame counts. The folder is written whole or not at all
+    (:func:`.folder_out.build_folder`: a non-empty folder only with ``force``).
 
     Raises
     ------
@@ -93,22 +82,9 @@ def write_emulated_folder(
         ``folder`` is a file, or a non-empty folder without ``force``, or its parent
         cannot be written.
     """
-    target = Path(folder)
-    if target.exists() and not target.is_dir():
-        raise InputError(f"{target}: is a file, not a folder")
-    if target.is_dir() and any(target.iterdir()) and not force:
-        raise InputError(
-            f"{target}: folder is not empty; give --force to replace its calibration frames, "
-            "or choose another folder"
-        )
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
-    try:
-        truth = _record(tmp, size, overrides, seed, profile, settings, progress)
-        _move_into(tmp, target)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return truth
+    return build_folder(
+        folder, force, lambda tmp: _record(tmp, size, overrides, seed, profile, settings, progress)
+    )
 
 
 def _record(
@@ -120,22 +96,16 @@ def _record(
     settings: AcquisitionSettings | None,
     progress: ProgressFn | None,
 ) -> RigParams:
-    import cv2
-
-    def save(name: str, dn: np.ndarray, rig: RigParams) -> None:
-        img = np.clip(np.rint(np.asarray(dn, np.float64) + rig.black_level_dn), 0, 65535)
-        if not cv2.imwrite(str(root / f"{name}.png"), img.astype(np.uint16)):
-            raise InputError(f"{root / name}.png: cannot write the frame")
-
     with open_sim_calibration_rig(size, overrides, None, seed, None, profile) as sim:
         rig = sim.params
 
         def sink(tag: tuple[str, float], i: int, img: np.ndarray) -> None:
-            kind, key = tag
-            stem = f"gray_{int(key):02d}" if kind == "gray" else f"{kind}_{key:.9g}s"
-            save(f"{stem}_{i:02d}", img, rig)
+            save_frame(root, frame_stem(tag, i), img, rig.black_level_dn)
 
         acquire_frames(sim, settings, progress, sink)
+
+    def save(name: str, dn: np.ndarray) -> None:
+        save_frame(root, name, dn, rig.black_level_dn)
 
     pattern = None
     for p, (square, shift) in enumerate(TARGET_POSES):
@@ -143,42 +113,36 @@ def _record(
         if find_corners(np.mean(vet, axis=0), pattern) is None:
             log.warning("calibrate: emulated target pose %d not detectable at this size", p)
         for n, (v, m) in enumerate(zip(vet, meas, strict=True)):
-            save(f"target_vet_{p:02d}_{n:02d}", v, rig)
-            save(f"target_meas_{p:02d}_{n:02d}", m, rig)
+            save(f"target_vet_{p:02d}_{n:02d}", v)
+            save(f"target_meas_{p:02d}_{n:02d}", m)
 
     c = min(SWITCH_SUBFRAME, rig.n_subframes - 1)
-    wins = np.round(c * rig.subframe_s + np.arange(-2e-3, 5e-3 + 1e-9, 2.5e-4), 6)
-    wins = wins[(wins > 0) & (wins <= rig.frame_s)]
+    wins = switch_windows(rig, c)
     reps = np.repeat(wins, SWITCH_FRAMES)
     rate = 0.5 * rig.full_well_e / float(wins.max())
     frames = emulated_switching_frames(rig, c, reps, rate, seed, dark=True)
     for k, (w, dn) in enumerate(zip(reps, frames, strict=True)):
-        save(f"switch_{c}_{w:.9g}s_{k % SWITCH_FRAMES:02d}", dn, rig)
+        save(f"switch_{c}_{w:.9g}s_{k % SWITCH_FRAMES:02d}", dn)
 
     write_timestamps(root / TIMESTAMPS_FILE, *emulated_timestamps(rig, seed=seed))
-
-    d = rig.to_dict()
-    lines = ["# the emulated rig's settings (its parts are what calibration finds)", "[params]"]
-    for key in _PARAMS:
-        v = d[key]
-        lines.append(f"{key} = {list(v) if isinstance(v, (list, tuple)) else repr(v)}")
-    if pattern is not None:
-        lines += ["", "[calibration]", f"chessboard = [{pattern[0]}, {pattern[1]}]"]
-    (root / "rig.toml").write_text("\n".join(lines) + "\n")
+    write_rig_toml(
+        root, rig, pattern, "the emulated rig's settings (its parts are what calibration finds)"
+    )
     return rig
 
 
-def _move_into(tmp: Path, target: Path) -> None:
-    """Move the recorded files of ``tmp`` into ``target`` (replacing layout files)."""
-    if not target.exists():
-        os.replace(tmp, target)
-        return
-    for p in target.iterdir():
-        named = p.name in ("rig.toml", TIMESTAMPS_FILE)
-        if p.is_file() and (named or any(r.match(p.stem) for r in LAYOUT)):
-            p.unlink()
-    for p in tmp.iterdir():
-        os.replace(p, target / p.name)
+def switch_windows(
+    rig: RigParams,
+    c: int,
+    before_s: float = SWITCH_BEFORE_S,
+    after_s: float = SWITCH_AFTER_S,
+    step_s: float = SWITCH_STEP_S,
+) -> np.ndarray:
+    """Exposure windows (s, rounded to 1 us) of a switching series closing at subframe
+    ``c``: ``step_s`` apart from ``before_s`` before its nominal time ``c tau`` to
+    ``after_s`` after, those in ``(0, frame_s]``."""
+    wins = np.round(c * rig.subframe_s + np.arange(-before_s, after_s + 1e-9, step_s), 6)
+    return wins[(wins > 0) & (wins <= rig.frame_s)]
 
 
 def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, float]:
