@@ -23,8 +23,10 @@ LAYERS = (
     "parts",
     "recorded_parts",
     "recorded",
+    "folder_out",
     "emulated",
     "emulated_folder",
+    "live",
     "run",
     "selftest",
 )

@@ -30,8 +30,17 @@ chessboard both cameras see and a switching series, from which the measurement
 camera's mapping, the trigger offset and the switching time are found, the
 measurement camera's gain and vignetting (its flat field through that mapping), and
 the trigger jitter and drop rate (meas_timestamps.csv: frame_id,timestamp_s per frame
-the measurement camera gave on the subframe clock). --save-frames DIR records the
-emulated rig's frames into DIR in that layout and calibrates from it.
+the measurement camera gave on the subframe clock).
+
+A rig (sim or RIG.toml) is recorded live into that layout through its own devices and
+calibrated from it as --frames would: the flat fields and Gray code, --board-poses
+chessboard poses with all cells open (on a real rig you place the board when prompted
+and press Enter; standard input must be a terminal), a switching series (every cell
+closed at subframe 20 on the subframe clock, the VET exposure stepped across it; a
+camera whose exposure the host cannot set skips it with a warning) and --clock-frames
+subframes of the measurement camera's frame ids and timestamps. --save-frames DIR keeps
+the recorded folder (a rig file otherwise records into a temporary folder that is then
+removed; --rig sim without --save-frames renders the parts from its truth).
 
 \b
 Example:
@@ -39,6 +48,7 @@ Example:
       --leakage 0.003 --dark-current 15 -o cal.exr
   vet calibrate --frames recorded/ --lcos 1024x600 -o cal.npz
   vet calibrate --rig sim --size 320x240 --save-frames frames/ -o cal.npz
+  vet calibrate --rig rig.toml --board-poses 4 --save-frames frames/ -o cal.npz
   vet capture --rig sim --size 320x256 --calibration cal.exr -o cap1
 """,
 )
@@ -65,8 +75,24 @@ Example:
     "--save-frames",
     default=None,
     metavar="DIR",
-    help="[sim] Record the emulated rig's frames into DIR in the --frames layout (an empty "
-    "or new folder; --force replaces the frames of a used one) and calibrate from it.",
+    help="Record the rig's frames live into DIR in the --frames layout (an empty or new "
+    "folder; --force replaces the frames of a used one) and calibrate from it.",
+)
+@click.option(
+    "--board-poses",
+    type=click.IntRange(0, 99),
+    default=2,
+    show_default=True,
+    help="[live] Chessboard poses recorded (a real rig prompts for each on a terminal); 0: "
+    "none, and no measurement-to-VET mapping.",
+)
+@click.option(
+    "--clock-frames",
+    type=click.IntRange(0, 2_000_000),
+    default=20000,
+    show_default=True,
+    help="[live] Subframes the measurement camera's frame ids and timestamps are recorded "
+    "over (trigger jitter, drop rate); 0: none.",
 )
 @click.option("--scene", default=None, help="[sim] Scene instead of the flat field.")
 @click.option("--size", type=SIZE, default=None, help="[sim] Sensor size [1280x1024].")
@@ -89,6 +115,8 @@ def cli(
     frames_dir: str | None,
     true_homography: str | None,
     save_frames: str | None,
+    board_poses: int,
+    clock_frames: int,
     scene: str | None,
     size: tuple[int, int] | None,
     seed: int,
@@ -100,9 +128,9 @@ def cli(
 
     if rig_spec is None and frames_dir is None:
         raise click.UsageError("give --rig sim|RIG.toml or --frames FOLDER")
-    if save_frames is not None and (rig_spec != "sim" or frames_dir is not None):
+    if save_frames is not None and (rig_spec is None or frames_dir is not None):
         raise click.UsageError(
-            "--save-frames records the emulated rig: give --rig sim, not --frames"
+            "--save-frames records a rig live: give --rig sim|RIG.toml, not --frames"
         )
     check_outputs([Output("-o", output), Output("--save-frames", save_frames, "folder")], force)
     with Progress("calibrate") as progress:
@@ -119,6 +147,7 @@ def cli(
             progress=progress,
             save_frames=save_frames,
             force=force,
+            live=c.LiveSettings(clock_frames=clock_frames, board_poses=board_poses),
         )
     c.write_calibration(output, cal)
     fit, s = cal.homography_fit, cal.summary

@@ -30,10 +30,12 @@ The modules, each importing only those above it:
 - :mod:`.recorded_parts`: those parts fitted from a folder's chessboard poses,
   switching series, Gray code, measurement flat field and timestamps.
 - :mod:`.recorded`: reading a folder of recorded frames or camera raws.
+- :mod:`.folder_out`: writing such a folder whole or not at all.
 - :mod:`.emulated`: the emulated rig and the errors against its truth.
-- :mod:`.emulated_folder`: the emulated rig's frames written as such a folder
-  (``vet calibrate --rig sim --save-frames DIR``), and the parts' errors against its
-  truth.
+- :mod:`.emulated_folder`: the emulated rig's frames rendered from its truth as such a
+  folder, and the parts' errors against its truth.
+- :mod:`.live`: recording a rig's frames live, through its device interfaces, as such a
+  folder (``vet calibrate --rig sim|RIG.toml --save-frames DIR``).
 - :mod:`.run`: :func:`run_calibration`, what ``vet calibrate`` does.
 - :mod:`.selftest`: the acceptance point, ``python -m stages.calibrate --selftest``.
 
@@ -63,8 +65,9 @@ from .geometry import (
     parse_homography,
 )
 from .gray_code import decode_gray, gray_bit_counts, gray_code_patterns
+from .live import LiveSettings, record_rig_folder
 from .recorded import IMAGE_SUFFIXES, RAW_SUFFIXES, calibrate_from_folder, read_frame
-from .run import run_calibration
+from .run import calibrate_live, run_calibration
 from .selftest import selftest
 from .sensor_models import dark_model, leakage_map, signal_rate
 
@@ -76,10 +79,12 @@ __all__ = [
     "Calibration",
     "CalibrationFrames",
     "HomographyFit",
+    "LiveSettings",
     "ProgressFn",
     "acquire_frames",
     "apply_calibration",
     "calibrate_frames",
+    "calibrate_live",
     "calibrate_from_folder",
     "calibrate_rig",
     "calibrate_sim",
@@ -99,6 +104,7 @@ __all__ = [
     "parse_homography",
     "read_calibration",
     "read_frame",
+    "record_rig_folder",
     "run_calibration",
     "selftest",
     "signal_rate",

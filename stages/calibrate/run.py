@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -10,11 +11,12 @@ import numpy as np
 
 from ..errors import InputError
 from ..rig import RigParams
-from .acquire import AcquisitionSettings, calibrate_rig
+from .acquire import AcquisitionSettings
 from .calfile import Calibration
 from .emulated import calibrate_sim, compare_to_truth
 from .frames import ProgressFn
 from .geometry import parse_homography
+from .live import AskFn, LiveSettings, check_live, record_rig_folder
 from .recorded import calibrate_from_folder
 
 log = logging.getLogger("vet.calibrate")
@@ -34,6 +36,7 @@ def run_calibration(
     profile: str = "ideal",
     save_frames: str | Path | None = None,
     force: bool = False,
+    live: LiveSettings | None = None,
 ) -> Calibration:
     """What ``vet calibrate`` does: from recorded ``frames``, the emulated rig, or a rig file.
 
@@ -53,11 +56,15 @@ def run_calibration(
     settings : AcquisitionSettings, optional
     progress : callable(done, total), optional
     save_frames : path, optional
-        Emulated rig only: record its calibration frames into this folder in the
-        ``--frames`` layout (:func:`.emulated_folder.write_emulated_folder`; a non-empty
-        folder only with ``force``) and calibrate from the folder, as ``--frames`` would;
-        the provenance gets the emulated truth's parts and ``errors_vs_truth``
-        (:func:`.emulated_folder.compare_parts_to_truth`).
+        Record the rig's calibration frames live into this folder in the ``--frames``
+        layout (:func:`.live.record_rig_folder`; a non-empty folder only with ``force``)
+        and calibrate from the folder, as ``--frames`` would. On ``sim`` the provenance
+        gets the emulated truth's parts and ``errors_vs_truth``
+        (:func:`.emulated_folder.compare_parts_to_truth`). A rig file is always recorded
+        this way, into a temporary folder (removed afterwards) without ``save_frames``.
+    live : LiveSettings, optional
+        What the live recording records beyond the flat fields (chessboard poses, the
+        frame clock's length, the switching series).
 
     Returns
     -------
@@ -76,14 +83,14 @@ def run_calibration(
         return calibrate_from_folder(frames, params, progress=progress)
     if rig_spec is None:
         raise InputError("nothing to calibrate: give a rig or a folder of frames")
-    if save_frames is not None:
-        if rig_spec != "sim" or true_homography or scene:
+    if save_frames is not None and rig_spec == "sim":
+        if true_homography or scene:
             raise InputError(
                 "saving frames needs the emulated rig (--rig sim) with its flat field and "
                 "nominal homography"
             )
         return _calibrate_saved(
-            save_frames, size, overrides, seed, profile, settings, force, progress
+            save_frames, size, overrides, seed, profile, settings, force, progress, live
         )
     if rig_spec == "sim":
         wh = size or RigParams().sensor_size
@@ -98,7 +105,34 @@ def run_calibration(
             "(rig parameters belong in its [params])"
         )
     with open_rig(rig_spec) as rig:
-        return calibrate_rig(rig, progress, settings)
+        return calibrate_live(rig, save_frames, settings, live, force, progress)
+
+
+def calibrate_live(
+    rig: Any,
+    save_frames: str | Path | None = None,
+    settings: AcquisitionSettings | None = None,
+    live: LiveSettings | None = None,
+    force: bool = False,
+    progress: ProgressFn | None = None,
+    ask: AskFn | None = None,
+) -> Calibration:
+    """Record an open ``rig``'s calibration frames live (:func:`.live.record_rig_folder`)
+    into ``save_frames`` (a temporary folder, removed afterwards, when None) and calibrate
+    from the folder (:func:`calibrate_from_folder`). The provenance's ``live`` holds the
+    rig and what was recorded; ``source`` is the rig when the folder was temporary."""
+    if save_frames is not None:
+        info = record_rig_folder(rig, save_frames, settings, live, force, progress, ask)
+        cal = calibrate_from_folder(save_frames, progress=progress)
+    else:
+        check_live(rig, live or LiveSettings(), ask)
+        with tempfile.TemporaryDirectory(prefix="vet-cal-") as tmp:
+            folder = Path(tmp) / "frames"
+            info = record_rig_folder(rig, folder, settings, live, False, progress, ask)
+            cal = calibrate_from_folder(folder, progress=progress)
+        cal.provenance["source"] = f"rig:{rig.name}"
+    cal.provenance["live"] = {"rig": rig.name, "rig_meta": dict(rig.meta), **info}
+    return cal
 
 
 def _calibrate_saved(
@@ -110,14 +144,18 @@ def _calibrate_saved(
     settings: AcquisitionSettings | None,
     force: bool,
     progress: ProgressFn | None,
+    live: LiveSettings | None,
 ) -> Calibration:
-    """Record the emulated rig's frames into ``folder``, calibrate from it, compare."""
+    """Record the emulated rig's frames live into ``folder`` (:func:`calibrate_live`),
+    calibrate from it, compare with the emulated truth."""
     from ..optics import PARTS
-    from .emulated_folder import compare_parts_to_truth, write_emulated_folder
+    from .emulated import open_sim_calibration_rig
+    from .emulated_folder import compare_parts_to_truth
 
-    truth = write_emulated_folder(folder, size, overrides, seed, profile, settings, force)
+    with open_sim_calibration_rig(size, overrides, None, seed, None, profile) as rig:
+        truth = rig.params
+        cal = calibrate_live(rig, folder, settings, live, force, progress)
     log.info("calibrate: emulated rig's frames written to %s", folder)
-    cal = calibrate_from_folder(folder, progress=progress)
     d = truth.to_dict()
     cal.provenance["emulated_truth"] = {
         k: d[k] for k in ("leakage", "dark_current_e_s", "measure_fraction", *PARTS) if k in d
