@@ -109,15 +109,17 @@ def terminal_prompt(k: int, n: int) -> None:
 
 
 def check_live(rig: Any, live: LiveSettings, ask: AskFn | None = None) -> None:
-    """Refuse, before anything is recorded, chessboard poses on a real rig that nobody can
-    be asked for: no ``ask`` and standard input not a terminal.
+    """Refuse, before anything is recorded, chessboard poses on a real rig (``rig`` None:
+    one not opened yet) that nobody can be asked for: no ``ask`` and standard input not
+    a terminal.
 
     Raises
     ------
     UsageError
         (exit 2) naming ``--board-poses``, ``--frames`` and the terminal.
     """
-    if live.board_poses > 0 and ask is None and not emulated_cameras(rig):
+    real = rig is None or not emulated_cameras(rig)
+    if live.board_poses > 0 and ask is None and real:
         if not (sys.stdin is not None and sys.stdin.isatty()):
             raise UsageError(
                 "the chessboard poses need someone at the rig pressing Enter, and standard "
@@ -249,13 +251,13 @@ def record_board_poses(
 
 
 def _close_all_at(rig: Any, c: int, frame_index: int) -> tuple[int, np.ndarray]:
-    """Open a new frame on the LCoS and close every cell so that the device applies it at
-    subframe ``c`` of the frame: the closure is sent ``latency`` subframes ahead on the
-    subframe clock (the emulated controller's clock ticked; on hardware, the measurement
+    """Open a new frame on the LCoS and close every cell (a full mask) so that the device
+    applies it at subframe ``c`` of the frame: the mask is sent ``latency`` subframes
+    ahead on the subframe clock (the emulated controller's clock ticked; on hardware, the measurement
     camera's frames counted), and acknowledged. A host-triggered VET camera is started
     with the frame. Returns the subframe the device acknowledges (of the frame) and, per
-    cell, the subframe the device applied (the emulated device's own record; the host's
-    acknowledgements on hardware)."""
+    cell, the subframe of the frame at which the device reports having applied it (-1:
+    open)."""
     lcos = rig.lcos
     lat = int(rig.params.latency_subframes)
     s0 = lcos.open_all(frame_index, wait=True)
@@ -267,16 +269,9 @@ def _close_all_at(rig: Any, c: int, frame_index: int) -> tuple[int, np.ndarray]:
         rig.vet.start_exposure()
         for _ in range(max(0, ahead - 1)):  # frame k arrives at the end of subframe k
             rig.measurement.grab()
-    lcos.close_cells(np.arange(lcos.n_cells), wait=False)
-    lcos.flush()
-    applied = np.asarray(lcos.applied_subframe, np.int64) - int(lcos.frame_start_subframe)
-    if rig.is_emulated:
-        record = rig.emulator.snapshot()
-        applied = np.where(
-            record.applied_subframe >= 0,
-            record.applied_subframe - record.frame_start_subframe,
-            -1,
-        )
+    lcos.send_full_mask(np.ones(lcos.n_cells, bool), wait=True)
+    raw = np.asarray(lcos.applied_subframe, np.int64)
+    applied = np.where(raw >= 0, raw - int(lcos.frame_start_subframe), -1)
     return int(np.median(applied)), applied
 
 

@@ -104,6 +104,7 @@ def run_calibration(
             "calibrate: emulated-rig and rig options are ignored with a rig file "
             "(rig parameters belong in its [params])"
         )
+    check_live(None, live or LiveSettings())  # before any device is opened
     with open_rig(rig_spec) as rig:
         return calibrate_live(rig, save_frames, settings, live, force, progress)
 
