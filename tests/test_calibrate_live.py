@@ -147,3 +147,32 @@ def test_a_camera_whose_exposure_cannot_be_set_skips_the_switching_series(
     assert "cannot have its exposure set from the host" in caplog.text
     assert "switching series (trigger offset, switching time) is skipped" in caplog.text
     assert Path(tmp_path).exists()
+
+
+def test_a_real_rig_is_asked_for_each_board_pose_and_its_clock_recorded(tmp_path, caplog):
+    """The hardware path with fake devices (a V4L2-like VET camera whose exposure the
+    host cannot set): the person asked for each pose, both cameras' frames saved per
+    pose, the switching series skipped, the measurement camera's own frame ids written."""
+    from tests.test_calibrate import _fake_hardware_rig
+
+    rig, _ = _fake_hardware_rig()
+    asked = []
+    live = LiveSettings(clock_frames=30, board_poses=2, board_frames=2)
+    with caplog.at_level(logging.WARNING, logger="vet.calibrate"):
+        cal = c.calibrate_live(
+            rig,
+            tmp_path / "frames",
+            c.AcquisitionSettings(frames_per_exposure=2),
+            live,
+            ask=lambda k, n: asked.append((k, n)),
+        )
+    assert asked == [(1, 2), (2, 2)]
+    names = {p.name for p in (tmp_path / "frames").iterdir()}
+    for stem in ("target_vet_00_01", "target_meas_01_00", "open_0.01s_01", "meas_flat_0.005s_00"):
+        assert f"{stem}.png" in names, stem
+    assert not any(n.startswith("switch_") for n in names)
+    assert "switching series (trigger offset, switching time) is skipped" in caplog.text
+    ids, _ = read_timestamps(tmp_path / "frames" / "meas_timestamps.csv")
+    assert ids.size == 30 and np.array_equal(np.diff(ids), np.ones(29))
+    assert cal.provenance["live"]["clock_frames"] == 30
+    assert cal.homography is not None

@@ -172,7 +172,7 @@ def _record(
     progress: ProgressFn | None,
     ask: AskFn | None,
 ) -> dict[str, Any]:
-    black = rig.params.black_level_dn if rig.is_emulated else 0.0
+    black = rig.params.black_level_dn if getattr(rig, "is_emulated", False) else 0.0
 
     def save(name: str, img: np.ndarray) -> None:
         save_frame(root, name, img, black)
@@ -225,10 +225,10 @@ def record_board_poses(
     ask = ask or terminal_prompt
     ex.show(None)
     pattern = None
-    level = 1.0 if rig.truth is None else float(np.median(rig.truth))
     try:
         for p in range(live.board_poses):
             if emulated:
+                level = 1.0 if rig.truth is None else float(np.median(rig.truth))
                 square, shift = _emulated_pose(p)
                 board, pattern = chessboard_target(rig.params.sensor_size, square, offset_px=shift)
                 rig.vet.show_scene(board * np.float32(level))
