@@ -1,6 +1,8 @@
-"""A folder of calibration frames recorded on the emulated rig, in the layout that
-:func:`.recorded.calibrate_from_folder` reads (docs/calibration.md), and the errors of a
-calibration made from it against the emulated truth.
+"""A folder of calibration frames rendered from the emulated rig's truth, in the layout
+that :func:`.recorded.calibrate_from_folder` reads (docs/calibration.md), and the errors
+of a calibration made from such a folder against the emulated truth. (``vet calibrate
+--rig sim --save-frames`` records the emulated rig live instead, :mod:`.live`; this
+rendering is the reference it is compared with, and the tests' fixture.)
 
 What :func:`write_emulated_folder` records, every frame a 16-bit PNG of the camera's
 codes with the black level added back (a raw camera's pedestal, which the dark frames'
