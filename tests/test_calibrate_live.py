@@ -5,6 +5,7 @@ camera whose exposure cannot be set."""
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import tempfile
@@ -17,10 +18,16 @@ import pytest
 
 from stages import calibrate as c
 from stages.calibrate.frame_clock import emulated_timestamps, read_timestamps
-from stages.calibrate.live import LiveSettings, check_live, record_clock, record_switching
+from stages.calibrate.live import (
+    LiveSettings,
+    check_live,
+    record_clock,
+    record_switching,
+    terminal_prompt,
+)
 from stages.devices.cameras import OpenCVCamera
 from stages.devices.genicam import GenICamCamera
-from stages.errors import UsageError
+from stages.errors import InputError, UsageError
 from stages.rig import RigParams
 
 SIZE = (160, 120)
@@ -120,6 +127,15 @@ def test_board_poses_without_a_terminal_exit_2_before_any_device(tmp_path):
         check_live(SimpleNamespace(vet=object(), measurement=object()), LiveSettings())
     check_live(None, LiveSettings(board_poses=0))  # nothing to ask
     check_live(None, LiveSettings(), ask=lambda k, n: None)  # someone answers
+
+
+def test_terminal_prompt_asks_on_stderr_and_stops_when_stdin_closes(monkeypatch, capsys):
+    monkeypatch.setattr("sys.stdin", io.StringIO("\n"))
+    terminal_prompt(2, 3)
+    assert capsys.readouterr().err == "place the board for pose 2 of 3, press Enter\n"
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))
+    with pytest.raises(InputError, match="closed while waiting for board pose 1 of 3"):
+        terminal_prompt(1, 3)
 
 
 class _NoExposureTime:

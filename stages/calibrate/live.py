@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import UsageError
+from ..errors import InputError, UsageError
 from .acquire import AcquisitionSettings, _RigExposer, acquire_frames
 from .emulated_folder import (
     SWITCH_AFTER_S,
@@ -103,9 +103,11 @@ def emulated_cameras(rig: Any) -> bool:
 
 
 def terminal_prompt(k: int, n: int) -> None:
-    """Ask on standard error for pose ``k`` of ``n`` and wait for Enter on standard input."""
+    """Ask on standard error for pose ``k`` of ``n`` and wait for Enter on standard input
+    (:class:`InputError` when it is closed instead)."""
     print(f"place the board for pose {k} of {n}, press Enter", file=sys.stderr, flush=True)
-    sys.stdin.readline()
+    if not sys.stdin.readline():
+        raise InputError(f"standard input closed while waiting for board pose {k} of {n}")
 
 
 def check_live(rig: Any, live: LiveSettings, ask: AskFn | None = None) -> None:
@@ -316,7 +318,11 @@ def record_switching(
         for w in wins:
             window = float(w)
             if not emulated:
-                window = rig.vet.set_exposure_s(window) or window
+                got_s = rig.vet.set_exposure_s(window)
+                if got_s is None:
+                    log.warning("calibrate: the VET camera refused a %.6g s exposure", window)
+                    continue
+                window = got_s
             for n in range(live.switch_frames):
                 got, applied = _close_all_at(rig, c, index)
                 index += 1
