@@ -97,14 +97,15 @@ def run_calibration(
         cells = overrides.get("lcos_cells", RigParams().lcos_cells)
         true_h = None if true_homography is None else parse_homography(true_homography, cells, wh)
         return calibrate_sim(wh, overrides, true_h, seed, scene, progress, settings, profile)
-    from ..devices.rigs import open_rig
+    from ..devices.rigs import load_rig_file, open_rig
 
     if overrides or true_homography or size or scene:
         log.warning(
             "calibrate: emulated-rig and rig options are ignored with a rig file "
             "(rig parameters belong in its [params])"
         )
-    check_live(None, live or LiveSettings())  # before any device is opened
+    load_rig_file(rig_spec)  # a bad rig file first (exit 1)
+    check_live(None, live or LiveSettings())  # then before any device is opened
     with open_rig(rig_spec) as rig:
         return calibrate_live(rig, save_frames, settings, live, force, progress)
 
