@@ -113,6 +113,23 @@ def test_timestamps_file_holds_the_frames_the_camera_gave(tmp_path):
     assert ids.tolist() == [0, 1, 2, 3, 4] and np.allclose(t, 0.01 * ids)
 
 
+def test_a_camera_whose_frame_ids_do_not_advance_ends_the_clock_run(tmp_path):
+    """A driver that numbers every frame 0 cannot hang the recording: at most as many
+    grabs as subframes asked for (the repeated ids are then refused by the fit's reader)."""
+    grabs = []
+
+    class Stuck:
+        def start_exposure(self):
+            pass
+
+        def grab(self):
+            grabs.append(1)
+            return SimpleNamespace(index=0, timestamp_s=0.01 * len(grabs))
+
+    record_clock(SimpleNamespace(measurement=Stuck()), tmp_path / "s.csv", 50)
+    assert len(grabs) == 50
+
+
 def test_board_poses_without_a_terminal_exit_2_before_any_device(tmp_path):
     rig_file = tmp_path / "rig.toml"
     rig_file.write_text(

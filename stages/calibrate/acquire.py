@@ -50,7 +50,7 @@ class AcquisitionSettings:
     max_exposure_s: float = 10.0
 
 
-class _RigExposer:
+class RigExposer:
     """One exposure of either camera on any rig, averaged, as (H, W) float32 DN."""
 
     def __init__(self, rig: Any, sink: FrameSink | None = None):
@@ -63,7 +63,7 @@ class _RigExposer:
         self._stale = False
 
     @staticmethod
-    def _mono(img: np.ndarray) -> np.ndarray:
+    def mono(img: np.ndarray) -> np.ndarray:
         """(H, W) float32: colour frames averaged over their channels."""
         a = np.asarray(img, np.float32)
         return a.mean(axis=2) if a.ndim == 3 else a
@@ -97,11 +97,16 @@ class _RigExposer:
         cam.start_exposure()
         return cam.grab().data
 
+    def mark_stale(self) -> None:
+        """The scene changed (a mask, a board placed): a real camera's next frame may
+        have started before, and is dropped."""
+        self._stale = True
+
     def show(self, closed: np.ndarray | None) -> None:
         """Put a mask on the LCoS (None: all open) and wait for the device to apply it."""
         mask = np.zeros(self.n_cells, bool) if closed is None else np.asarray(closed, bool).ravel()
         self.rig.lcos.send_full_mask(mask, wait=True)
-        self._stale = True  # a real camera's next frame may have started before the mask
+        self.mark_stale()
 
     def vet(
         self,
@@ -127,7 +132,7 @@ class _RigExposer:
                     self._grab(self.rig.vet)
                     self._stale = False
                 img = self._grab(self.rig.vet)
-            img = self._mono(img)
+            img = self.mono(img)
             if self.sink is not None and tag is not None:
                 self.sink(tag, i, img)
             acc = img.astype(np.float64) if acc is None else acc + img
@@ -145,7 +150,7 @@ class _RigExposer:
                 self._meas_k += 1
             else:
                 img = self._grab(self.rig.measurement)
-            img = self._mono(img)
+            img = self.mono(img)
             if self.sink is not None and tag is not None:
                 self.sink(tag, i, img)
             acc = img.astype(np.float64) if acc is None else acc + img
@@ -181,7 +186,7 @@ def acquire_frames(
     CalibrationFrames
     """
     s = settings or AcquisitionSettings()
-    ex = _RigExposer(rig, sink)
+    ex = RigExposer(rig, sink)
     params = rig.params
     patterns = gray_code_patterns(params.lcos_cells)
     n_gray = len(patterns)

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, UsageError
-from .acquire import AcquisitionSettings, _RigExposer, acquire_frames
+from .acquire import AcquisitionSettings, RigExposer, acquire_frames
 from .emulated_folder import (
     SWITCH_AFTER_S,
     SWITCH_BEFORE_S,
@@ -185,7 +185,7 @@ def _record(
     s = settings or AcquisitionSettings()
     frames = acquire_frames(rig, s, progress, sink)
     t_open = max(frames.open)
-    ex = _RigExposer(rig, sink)
+    ex = RigExposer(rig, sink)
     out: dict[str, Any] = {"poses": 0, "pattern": None, "closures": [], "clock_frames": 0}
     if live.board_poses > 0:
         out["poses"], out["pattern"] = record_board_poses(ex, live, t_open, ask)
@@ -216,7 +216,7 @@ def _emulated_pose(k: int) -> tuple[int, tuple[float, float]]:
 
 
 def record_board_poses(
-    ex: _RigExposer, live: LiveSettings, exposure_s: float, ask: AskFn | None
+    ex: RigExposer, live: LiveSettings, exposure_s: float, ask: AskFn | None
 ) -> tuple[int, tuple[int, int] | None]:
     """``live.board_poses`` chessboard poses, every cell open, ``live.board_frames``
     frames of each camera to ``ex``'s sink (``target_vet``, ``target_meas``); the VET
@@ -237,7 +237,7 @@ def record_board_poses(
                 rig.measurement.show_scene(board * np.float32(level))
             else:
                 ask(p + 1, live.board_poses)
-                ex._stale = True  # a frame may have started before the board was placed
+                ex.mark_stale()  # a frame may have started before the board was placed
             vet = ex.vet(None, exposure_s, live.board_frames, tag=("target_vet", p))
             ex.meas(live.board_frames, tag=("target_meas", p))
             if pattern is not None and find_corners(vet, pattern) is None:
@@ -330,7 +330,7 @@ def record_switching(
                     img = rig.vet.expose_window(applied, window)
                 else:
                     img = rig.vet.grab().data
-                img = _RigExposer._mono(img)
+                img = RigExposer.mono(img)
                 saturated = max(saturated, float(np.mean(img >= p.saturation_dn)))
                 closures.add(got)
                 save(f"switch_{got}_{window:.9g}s_{n:02d}", img)
@@ -365,7 +365,8 @@ def record_switching(
 def record_clock(rig: Any, path: Path, subframes: int) -> int:
     """Run the measurement camera on its subframe clock for ``subframes`` subframes (an
     emulated one's :meth:`free_run`) and write every frame it delivers within them (ids
-    from the first received to ``subframes - 1`` after it) as ``frame_id,timestamp_s``
+    from the first received to ``subframes - 1`` after it, at most ``subframes`` grabs) as
+    ``frame_id,timestamp_s``
     (the camera's own ``Frame.index`` and ``Frame.timestamp_s``) to ``path``
     (:func:`.frame_clock.write_timestamps`). Returns the frames written."""
     cam = rig.measurement
@@ -374,7 +375,7 @@ def record_clock(rig: Any, path: Path, subframes: int) -> int:
     ids: list[int] = []
     stamps: list[float] = []
     first = None
-    while True:
+    for _ in range(subframes):  # (a camera whose ids do not advance still ends)
         cam.start_exposure()
         f = cam.grab()
         first = f.index if first is None else first
