@@ -9,7 +9,7 @@ from .alignment import layer_cost
 from .bins import equalise_all
 
 #: A mode must gather this share of the confident pixels to become a layer.
-MIN_MODE_SHARE = 0.04
+MIN_MODE_SHARE = 0.02
 #: At most this many moving layers.
 MAX_MOVING_LAYERS = 3
 
