@@ -8,8 +8,9 @@ import tracemalloc
 import numpy as np
 import scipy.sparse as sp
 
-from stages.deblur import problem
-from stages.deblur.problem import StackedOperator, diag_normal, observations, product
+from stages.deblur import stacked
+from stages.deblur.problem import observations
+from stages.deblur.stacked import StackedOperator, diag_normal, product
 from stages.motion import parse_motion
 from stages.rig import RigParams
 from stages.scenes import builtin_interior
@@ -50,7 +51,7 @@ def test_stacked_groups_and_their_pieces_make_the_whole_stack():
     parts = _parts(rng, n=50, nb=7)
     S = np.vstack([M.toarray().astype(np.float64) for M in parts])
     op = StackedOperator(parts)
-    assert 1 < len(op.groups) <= problem.BIN_GROUPS
+    assert 1 < len(op.groups) <= stacked.BIN_GROUPS
     assert [g[2] for g in op.groups][0] == 0 and op.groups[-1][3] == 350
     x = rng.random((50, 3))
     w = rng.random((350, 3)).astype(np.float32)
@@ -87,7 +88,7 @@ def test_diag_normal_in_row_blocks_equals_the_whole(monkeypatch):
     (A,) = _parts(rng, n=50, nb=1)
     w = rng.random((50, 3))
     whole = (A.toarray().astype(np.float64) ** 2).T @ w
-    monkeypatch.setattr(problem, "DIAG_BLOCK_ROWS", 7)  # several blocks, a short last one
+    monkeypatch.setattr(stacked, "DIAG_BLOCK_ROWS", 7)  # several blocks, a short last one
     np.testing.assert_allclose(diag_normal(A, w), whole, rtol=1e-5)
 
 
@@ -174,10 +175,11 @@ def test_a_vanishing_cross_component_keeps_one_row_of_weights():
 
 def test_a_stream_is_fitted_through_unbiased_time_bins():
     """A stream capture is observed through FIT_BINS time bins whose inverse-variance
-    weights do not favour the low counts: on a flat, still, dark scene (about 60 e- a
-    bin) the weighted mean of the bins is the plain mean to 0.5% (0.997 here; weights from
-    each bin's own count gave 0.990)."""
-    from stages.deblur.problem import FIT_BINS
+    weights do not favour the low counts: on a flat, still, dark scene (about 60 e- in a
+    bin of eight subframes) the weighted mean of the bins' rates (each bin's electrons
+    over its subframes, weighted by the inverse variance of that rate) is the plain mean
+    of the rates to 0.5% (weights from each bin's own count gave 0.990)."""
+    from stages.deblur.problem import FIT_BINS, fit_bin_edges
     from tests.test_deblur import flat_dark_capture
 
     w, h, signal = 96, 80, 2000.0
@@ -185,10 +187,12 @@ def test_a_stream_is_fitted_through_unbiased_time_bins():
     assert cap.keeps_stream
     obs = observations(cap)
     assert obs.yb.shape == (FIT_BINS * h * w, 1)
-    yb = obs.yb.reshape(FIT_BINS, h, w)[:, 4:-4, 4:-4]
-    wb = obs.wb.reshape(FIT_BINS, h, w)[:, 4:-4, 4:-4]
-    weighted = (wb * yb).sum(axis=0) / wb.sum(axis=0)
-    assert abs(float(weighted.mean() / yb.mean()) - 1.0) < 0.005
+    n = np.diff(fit_bin_edges(cap.measure.shape[0], FIT_BINS)).reshape(-1, 1, 1)
+    rate = obs.yb.reshape(FIT_BINS, h, w)[:, 4:-4, 4:-4] / n
+    wr = obs.wb.reshape(FIT_BINS, h, w)[:, 4:-4, 4:-4] * n**2
+    weighted = (wr * rate).sum(axis=0) / wr.sum(axis=0)
+    plain = (rate * n).sum(axis=0) / n.sum()  # (each subframe's rate once)
+    assert abs(float(weighted.mean() / plain.mean()) - 1.0) < 0.005
 
 
 def test_release_stream_drops_the_stream_and_changes_nothing():

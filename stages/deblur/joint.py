@@ -87,14 +87,12 @@ from .problem import (
     BIN_STEP_COARSE,
     VET_STEP_COARSE,
     Observations,
-    StackedOperator,
     build_operators,
-    diag_normal,
     grad,
     pcg,
-    product,
     smooth_normal,
 )
+from .stacked import StackedOperator, diag_normal, product
 from .still_pixels import fuse_still, moving_support
 from .stream import StreamTerm, layer_motion, stream_term
 

@@ -7,7 +7,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from .operator import static_rows
-from .problem import Observations, StackedOperator, product
+from .problem import Observations
+from .stacked import StackedOperator, product
 from .stream import StreamTerm
 
 

@@ -1,0 +1,143 @@
+"""Sparse products of the deblur's operators: one matrix with several image columns
+(:func:`product`), the measuring bins' operators stacked in groups
+(:class:`StackedOperator`) and the diagonal of a weighted normal matrix
+(:func:`diag_normal`), each with bounded temporaries. Shapes: an image is (N, C) for N
+pixels and C channels; products are float32 unless stated."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+#: Mean non-zeros per row above which a product with several columns goes one column at
+#: a time (:func:`product`).
+LONG_ROWS_NNZ = 8
+
+
+def product(M: sp.spmatrix, x: np.ndarray) -> np.ndarray:
+    """``M @ x`` for ``x`` of shape (N, C), float32 (rows, C); ``M`` CSR or CSC (a
+    transposed view).
+
+    A float32 ``x`` keeps the product in the matrix's precision with no upcast copy of
+    ``M``. Several columns go through scipy's multi-vector kernel, which reads the matrix
+    once for all of them, where rows are short (a measuring bin's operator); where they
+    are long (over :data:`LONG_ROWS_NNZ` non-zeros on average: the VET image's), one
+    column at a time through the single-vector kernel, which is faster there.
+    """
+    if x.shape[1] == 1:
+        return (M @ np.ascontiguousarray(x[:, 0], np.float32)).reshape(-1, 1)
+    if M.nnz > LONG_ROWS_NNZ * M.shape[0]:
+        out = np.empty((M.shape[0], x.shape[1]), np.float32)
+        for c in range(x.shape[1]):
+            out[:, c] = M @ np.ascontiguousarray(x[:, c], np.float32)
+        return out
+    return np.asarray(M @ np.ascontiguousarray(x, np.float32), np.float32)
+
+
+#: Groups the measuring bins' operators are stacked into (:class:`StackedOperator`):
+#: enough pieces of work, with the VET image's, to keep a few threads busy
+#: (:func:`stages.cluster.solve_threads`).
+BIN_GROUPS = 4
+
+
+class StackedOperator:
+    """Operators of several images sharing the unknown (the measuring bins).
+
+    Behaves as their vertical stack for the few products the solvers need. The parts are
+    stacked into at most :data:`BIN_GROUPS` consecutive groups (one CSR matrix each,
+    with its transposed view), so that a product is a few calls of scipy's kernels, not
+    one per bin, and the normal product splits into independent pieces, one per group
+    and channel (:meth:`normal_column`), that threads can share. Products go in the
+    parts' float32; no (B N, C) float64 array is ever made.
+    """
+
+    def __init__(self, parts: list[sp.csr_matrix], blurs: list[sp.csr_matrix] | None = None):
+        self.rows = parts[0].shape[0]
+        self.shape = (self.rows * len(parts), parts[0].shape[1])
+        step = -(-len(parts) // min(BIN_GROUPS, len(parts)))
+        #: (stack, its transposed view, first row, end row) of each group.
+        self.groups = []
+        for b0 in range(0, len(parts), step):
+            chunk = parts[b0 : b0 + step]
+            M = chunk[0].tocsr() if len(chunk) == 1 else sp.vstack(chunk, format="csr")
+            self.groups.append((M, M.T, b0 * self.rows, b0 * self.rows + M.shape[0]))
+        #: The bins' blurs on the VET grid (the groups' stacks, or what a camera's
+        #: sampling multiplies): where the motion moves an integration path.
+        self.blurs = [g[0] for g in self.groups] if blurs is None else blurs
+
+    def mv(self, x: np.ndarray) -> np.ndarray:
+        """``stack @ x`` for ``x`` of shape (N, C), float32 result (B N, C)."""
+        x32 = np.asarray(x, np.float32)
+        out = np.empty((self.shape[0], x.shape[1]), np.float32)
+        for M, _, r0, r1 in self.groups:
+            out[r0:r1] = product(M, x32)
+        return out
+
+    def mvt(self, r: np.ndarray) -> np.ndarray:
+        """``stack.T @ r`` for ``r`` of shape (B N, C), float64 result (N, C)."""
+        out = np.zeros((self.shape[1], r.shape[1]))
+        for _, MT, r0, r1 in self.groups:
+            out += MT @ np.asarray(r[r0:r1], np.float32)
+        return out
+
+    def mvt_weighted(self, w: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """``stack.T @ (w * r)`` (both (B N, C)) group by group, float64 (N, C)."""
+        out = np.zeros((self.shape[1], r.shape[1]))
+        for _, MT, r0, r1 in self.groups:
+            out += MT @ (w[r0:r1] * r[r0:r1]).astype(np.float32, copy=False)
+        return out
+
+    def normal_column(self, g: int, xc: np.ndarray, w: np.ndarray, c: int) -> np.ndarray:
+        """Group ``g``'s share of ``stack.T diag(w) stack @ x`` for channel ``c``:
+        ``xc`` that channel of ``x`` (N,) contiguous float32, ``w`` (B N, C); (N,)
+        float32. The pieces of all groups sum to :meth:`normal`'s column ``c``."""
+        M, MT, r0, r1 = self.groups[g]
+        y = M @ xc
+        y *= w[r0:r1, c]
+        return MT @ y
+
+    def normal(self, x: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """``stack.T diag(w) stack @ x`` (``w`` of shape (B N, C)), float64 (N, C).
+
+        Group by group and channel by channel: the transient is one group's (rows,)
+        float32 product.
+        """
+        out = np.zeros((self.shape[1], x.shape[1]))
+        for c in range(x.shape[1]):
+            xc = np.ascontiguousarray(x[:, c], np.float32)
+            for g in range(len(self.groups)):
+                out[:, c] += self.normal_column(g, xc, w, c)
+        return out
+
+    def diag_normal(self, w: np.ndarray) -> np.ndarray:
+        """Diagonal of ``stack.T diag(w) stack`` (w of shape (B N, C))."""
+        out = None
+        for M, _, r0, r1 in self.groups:
+            part = diag_normal(M, w[r0:r1])
+            out = part if out is None else out + part
+        return out
+
+
+#: Rows per block of :func:`diag_normal` (bounds its copy of the squared values).
+DIAG_BLOCK_ROWS = 1 << 16
+
+
+def diag_normal(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
+    """Diagonal of ``A.T diag(w) A``, ``w`` of shape (N, C): ``sum_r w_r A_rc^2``.
+
+    Squares the stored values a block of :data:`DIAG_BLOCK_ROWS` rows at a time into a
+    matrix that shares ``A``'s index arrays (no index matching, unlike
+    ``A.multiply(A)``, and no squared copy of the whole matrix).
+    """
+    n_rows, n_cols = A.shape
+    out = np.zeros((n_cols, w.shape[1]))
+    for r0 in range(0, n_rows, DIAG_BLOCK_ROWS):
+        r1 = min(n_rows, r0 + DIAG_BLOCK_ROWS)
+        p0, p1 = int(A.indptr[r0]), int(A.indptr[r1])
+        blk = sp.csr_matrix(
+            (np.square(A.data[p0:p1]), A.indices[p0:p1], A.indptr[r0 : r1 + 1] - p0),
+            shape=(r1 - r0, n_cols),
+            copy=False,
+        )
+        out += blk.T @ np.asarray(w[r0:r1], np.float32)
+    return out
