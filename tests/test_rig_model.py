@@ -384,9 +384,9 @@ def test_deblur_reads_the_measuring_images_through_the_geometry(small_scene, mon
     """builtin:interior 96x80, translate:30,0, seed 3: the default deblur of the realistic
     rig, its bins fitted on the measurement camera's grid through its sampling and the
     switching time in its exposure, comes within 1.3x of the ideal rig's RMS error from
-    the same 16 fit bins; the bins the motion needs (60) help the realistic rig too (RMS
-    0.460 against 0.559 from 16); in tiles (each the camera pixels that see only it, on the
-    camera's grid) within 1.15x of the whole frame's."""
+    the same 16 fit bins; the bins the motion needs (60) help the realistic rig too; in
+    tiles (each the camera pixels that see only it, on the camera's grid) within 1.15x of
+    the whole frame's."""
     import stages.deblur.problem as problem
     from stages.deblur import deblur
     from stages.metrics import stops_error
@@ -404,7 +404,7 @@ def test_deblur_reads_the_measuring_images_through_the_geometry(small_scene, mon
         m.setattr(problem, "FIT_BINS_MAX", problem.FIT_BINS)
         real16 = rms("realistic")
         assert real16 <= 1.3 * rms("ideal")
-    assert real < 0.9 * real16
+    assert real < 0.8 * real16
     # In tiles (the camera's bins and the whole frame's equivalent T, cropped) alike.
     assert rms("realistic", tile=64) <= 1.15 * real
 
