@@ -195,49 +195,6 @@ def test_fit_bins_keep_the_fastest_motion_within_a_fraction_of_a_pixel():
     assert fit_bins(30.0, 0.99975, 131, 1280 * 1024) == FIT_BINS
 
 
-def test_the_first_fit_bins_are_the_first_subframes():
-    """Known answers of :func:`stages.deblur.problem.fit_bin_edges`: 1, 1 and 2
-    subframes, then near-equal bins of the rest; near-equal throughout when the rest
-    would get under two subframes a bin or there are too few bins. A capture binned at
-    those edges sums exactly those subframes."""
-    from stages.deblur.problem import FIRST_FIT_BINS, fit_bin_edges
-    from stages.errors import InputError
-    from stages.formats.capture import measure_bin_edges
-
-    assert FIRST_FIT_BINS == (1, 1, 2)
-    e = fit_bin_edges(131, 16)
-    assert e[:4].tolist() == [0, 1, 2, 4] and e[-1] == 131 and len(e) == 17
-    assert set(np.diff(e[3:]).tolist()) <= {9, 10}
-    assert fit_bin_edges(131, 64)[:5].tolist() == [0, 1, 2, 4, 6]
-    assert np.array_equal(fit_bin_edges(131, 4), measure_bin_edges(131, 4))
-    assert fit_bin_edges(20, 10)[:5].tolist() == [0, 1, 2, 4, 6]
-    assert np.array_equal(fit_bin_edges(7, 5), measure_bin_edges(7, 5))
-
-    rng = np.random.default_rng(3)
-    stream = rng.integers(0, 50, (12, 3, 4, 1)).astype(np.int16)
-    times = np.stack([np.arange(12), np.arange(12) + 1.0], 1) * 0.01
-    from stages.formats.capture import Capture
-
-    cap = Capture(
-        np.zeros((3, 4, 1), np.float32),
-        np.ones((3, 4), np.float32),
-        ["Y"],
-        RigParams(sensor_size=(4, 3), frame_s=0.12, subframe_s=0.01),
-        measure=stream,
-        measure_times=times,
-    )
-    edges = np.array([0, 1, 2, 4, 8, 12])
-    binned = cap.time_bins(5, edges)
-    for k in range(5):
-        np.testing.assert_array_equal(
-            binned.measure[k], stream[edges[k] : edges[k + 1]].sum(axis=0, dtype=np.float32)
-        )
-    assert binned.measure_times[:, 0].tolist() == pytest.approx((edges[:-1] * 0.01).tolist())
-    assert binned.measure_counts().tolist() == [1, 1, 2, 4, 4]
-    with pytest.raises(InputError, match="do not split"):
-        cap.time_bins(5, np.array([0, 1, 1, 4, 8, 12]))
-
-
 def test_a_panning_stream_is_fitted_in_bins_the_motion_does_not_blur(monkeypatch):
     """A 30 px/s pan of the chart: the default deblur fits 60 time bins (0.5 px of travel
     each) and is markedly closer to the truth in the bright pixels (those the VET image

@@ -345,7 +345,7 @@ def deblur(
             )
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
-    from .problem import bin_step, fit_bin_edges, fit_bins, vet_step
+    from .problem import bin_step, fit_bins, vet_step
 
     # Time bins of a stream that the misfit reads: short enough for the motion to blur
     # none of them by more than a fraction of a pixel.
@@ -386,7 +386,7 @@ def deblur(
             # (stages.deblur.camera_grid); the bins registered onto the VET grid start them.
             from .camera_grid import CameraBins
 
-            binned = recorded.time_bins(n_fit, fit_bin_edges(recorded.measure.shape[0], n_fit))
+            binned = recorded.time_bins(n_fit)
             tiles_cap = replace(
                 register_measure(binned),
                 ideal_T=cap.ideal_T,
@@ -395,7 +395,7 @@ def deblur(
         elif opts.use_measure and not opts.stream_fit and cap.keeps_stream:
             # The bins each tile would fit, made once: a tile's crop of them is what it
             # would bin from its crop of the stream, in less memory.
-            tiles_cap = cap.time_bins(n_fit, fit_bin_edges(cap.measure.shape[0], n_fit))
+            tiles_cap = cap.time_bins(n_fit)
         if release_stream and tiles_cap.measure is not recorded.measure:
             cap.measure = None
             recorded.measure = None

@@ -88,29 +88,6 @@ BIN_STEP_COARSE = 1.5
 VET_STEP_COARSE = 1.0
 
 
-#: Subframes in each of the first fit bins (:func:`fit_bin_edges`).
-FIRST_FIT_BINS = (1, 1, 2)
-
-
-def fit_bin_edges(n_frames: int, n_bins: int) -> np.ndarray:
-    """Edges (``n_bins + 1`` indices) of the fit bins of a stream of ``n_frames``
-    subframes: the first bins hold :data:`FIRST_FIT_BINS` subframes, the others near-equal
-    shares of the rest. The deblur estimates the scene at t = 0, and what moves over a
-    point or moves the frame right after t = 0 (an object's leading edge covering the
-    background, a camera path's start) only the first subframes see apart: a bin of
-    several subframes sums them at one place. Near-equal bins throughout
-    (:func:`~stages.formats.capture.measure_bin_edges`) when the rest would get fewer than
-    two subframes a bin, or there are too few bins."""
-    from ..formats.capture import measure_bin_edges
-
-    head = np.cumsum((0, *FIRST_FIT_BINS))
-    k = len(FIRST_FIT_BINS)
-    if n_bins < k + 2 or n_frames - int(head[-1]) < 2 * (n_bins - k):
-        return measure_bin_edges(n_frames, n_bins)
-    rest = np.linspace(int(head[-1]), n_frames, n_bins - k + 1).round().astype(int)
-    return np.concatenate([head[:-1], rest])
-
-
 def fit_bins(
     max_speed_px_s: float, span_s: float, n_subframes: int, pixels: int | None = None
 ) -> int:
@@ -220,7 +197,7 @@ def observations(
     yb = wb = None
     wins_b: list[list[Window]] = []
     if use_measure and cap.keeps_stream and not stream:
-        cap = cap.time_bins(n_bins, fit_bin_edges(cap.measure.shape[0], n_bins))
+        cap = cap.time_bins(n_bins)
     # A real rig's bins stay on the measurement camera's grid, observed through its
     # sampling, at its gain (measure_grid); else they come onto the VET grid.
     camera = cap.camera_bins if measure_grid and use_measure else None

@@ -113,25 +113,15 @@ class Capture:
         dur = np.diff(np.asarray(self.measure_times, np.float64), axis=1)[:, 0]
         return bool(np.all(np.rint(dur / self.rig.subframe_s) <= 1))
 
-    def time_bins(self, n_bins: int, edges: np.ndarray | None = None) -> Capture:
+    def time_bins(self, n_bins: int) -> Capture:
         """The capture with its measuring images summed into ``n_bins`` near-equal time
-        bins (float32 DN, times ``[start of the first, end of the last)``), or into the
-        bins between ``edges`` (``n_bins + 1`` increasing indices of its images, from 0
-        to their count); itself when it has no more images than ``n_bins``."""
+        bins (float32 DN, times ``[start of the first, end of the last)``); itself when it
+        has no more images than that."""
         from dataclasses import replace
 
         if self.measure is None or self.measure_times is None or self.measure.shape[0] <= n_bins:
             return self
-        if edges is None:
-            edges = measure_bin_edges(self.measure.shape[0], n_bins)
-        edges = np.asarray(edges, int)
-        if (
-            len(edges) != n_bins + 1
-            or edges[0] != 0
-            or edges[-1] != self.measure.shape[0]
-            or np.any(np.diff(edges) < 1)
-        ):
-            raise InputError(f"time bin edges {edges.tolist()} do not split the images in {n_bins}")
+        edges = measure_bin_edges(self.measure.shape[0], n_bins)
         # Filled in place: no list of bins beside their stacked copy.
         bins = np.empty((len(edges) - 1, *self.measure.shape[1:]), np.float32)
 
