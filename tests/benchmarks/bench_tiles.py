@@ -9,6 +9,10 @@ in-process (the solver's own threads, one a core), tiles on a Dask cluster of 1 
 workers (one thread each, as ``vet deblur -j N`` runs them), so that "2 workers against 1" compares
 the same engine.
 
+Beside the Dask runs it measures the ceiling this machine puts on "2 workers against 1"
+(:func:`two_process_ceiling`): the tile solves are sparse products, bound by memory
+bandwidth, and two cores of a shared machine do not always give twice one's throughput.
+
 Run: ``.venv/bin/python -m tests.benchmarks.bench_tiles [WxH] [TILE]`` (default 4096x3072
 with 1024 px tiles; ``make bench`` runs 2048x1536 with 1024 px tiles to stay short).
 """
@@ -111,6 +115,45 @@ def _deblur(path: str, tile: str, workers: str, seam_tile: int) -> dict:
     return out
 
 
+def _sparse_products(seconds_out, rows: int = 265_000, nnz_row: int = 32, reps: int = 200) -> None:
+    """Child: ``reps`` products of a banded CSR matrix the size of a tile's VET operator
+    (``rows`` pixels, ``nnz_row`` float32 non-zeros a row); puts the seconds taken."""
+    import numpy as np
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(0)
+    r = np.repeat(np.arange(rows), nnz_row)
+    c = (r + rng.integers(-40, 40, r.size)) % rows
+    A = sp.csr_matrix((rng.random(r.size, dtype=np.float32), (r, c)), shape=(rows, rows))
+    x = rng.random(rows, dtype=np.float32)
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        x = A @ x
+        x /= x.max()
+    seconds_out.put(time.perf_counter() - t0)
+
+
+def two_process_ceiling(rounds: int = 3) -> list[float]:
+    """Throughput of two processes doing sparse products at once over one alone (at
+    most 2), ``rounds`` times, sorted: the most "2 workers against 1" can give on this
+    machine now (a shared machine's varies from minute to minute)."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+
+    def run(n: int) -> float:
+        procs = [ctx.Process(target=_sparse_products, args=(q,)) for _ in range(n)]
+        for p in procs:
+            p.start()
+        times = [q.get() for _ in procs]
+        for p in procs:
+            p.join()
+        return max(times)
+
+    return sorted(2 * run(1) / run(2) for _ in range(rounds))
+
+
 def _child(*args: str) -> dict | None:
     cmd = [sys.executable, "-m", "tests.benchmarks.bench_tiles", "--child", *args]
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
@@ -160,6 +203,13 @@ def main(size: str = "2048x1536", tile: str = "1024") -> None:
         local, one, two = (results.get((tile, j)) for j in ("1", "dask1", "dask2"))
         if one and two:
             print(f"Dask, 2 workers vs 1: {one['time_s'] / two['time_s']:.2f}x", flush=True)
+            ceil = two_process_ceiling()
+            print(
+                "this machine's ceiling for it (2 processes of sparse products at once"
+                f" against 1): median {ceil[len(ceil) // 2]:.2f}x, range {ceil[0]:.2f}-"
+                f"{ceil[-1]:.2f}x",
+                flush=True,
+            )
         if local and two:
             print(
                 f"Dask, 2 workers vs in-process: {local['time_s'] / two['time_s']:.2f}x", flush=True
