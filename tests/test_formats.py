@@ -206,8 +206,30 @@ def test_declared_size_over_limit_is_refused_before_allocating(
     write_capture(tmp_path / "c.npz", small_capture)
     write_capture(tmp_path / "c.exr", small_capture)
     monkeypatch.setattr(limits, "MAX_INPUT_BYTES", 1000)
+    monkeypatch.setattr(limits, "MAX_DENSE_INPUT_BYTES", 1000)
     for name in ("c.npz", "c.exr"):
         with pytest.raises(FormatError, match="over the limit"):
+            read_layered(tmp_path / name)
+
+
+def test_a_dense_input_over_the_plain_limit_reads(tmp_path, small_capture, monkeypatch):
+    """Over VET_MAX_INPUT_BYTES, an input whose pixel data are at most DENSE_RATIO times
+    its bytes on disk (a large frame's measured light) still reads, up to
+    VET_MAX_DENSE_INPUT_BYTES; one that compresses more is refused, naming both."""
+    write_capture(tmp_path / "c.npz", small_capture)
+    write_capture(tmp_path / "c.exr", small_capture)
+    monkeypatch.setattr(limits, "MAX_INPUT_BYTES", 1000)
+    for name in ("c.npz", "c.exr"):
+        got = read_layered(tmp_path / name)
+        np.testing.assert_array_equal(got.layers["I"], small_capture.I)
+    monkeypatch.setattr(limits, "DENSE_RATIO", 0.5)  # (any real file is then "sparse")
+    for name in ("c.npz", "c.exr"):
+        with pytest.raises(FormatError, match=r"for inputs that compress more than 0\.5:1"):
+            read_layered(tmp_path / name)
+    monkeypatch.setattr(limits, "DENSE_RATIO", 8)
+    monkeypatch.setattr(limits, "MAX_DENSE_INPUT_BYTES", 2000)
+    for name in ("c.npz", "c.exr"):
+        with pytest.raises(FormatError, match="VET_MAX_DENSE_INPUT_BYTES"):
             read_layered(tmp_path / name)
 
 

@@ -78,9 +78,9 @@ def spooled_input(path: str | Path) -> Iterator[Path]:
                 if not chunk:
                     break
                 total += len(chunk)
-                if total > limits.MAX_INPUT_BYTES:
+                if total > limits.MAX_DENSE_INPUT_BYTES:
                     raise InputError(
-                        "standard input exceeds the input size limit (VET_MAX_INPUT_BYTES)"
+                        "standard input exceeds the input size limit (VET_MAX_DENSE_INPUT_BYTES)"
                     )
                 out.write(chunk)
         if total == 0:

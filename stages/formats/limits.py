@@ -5,8 +5,14 @@ window and channel count of an EXR header, the zip directory's sizes) against th
 limits before it inflates or allocates anything, so a small crafted file cannot claim a
 worker's memory or time:
 
-- :data:`MAX_INPUT_BYTES` (``VET_MAX_INPUT_BYTES``, default 2 GiB): the pixel data one
-  input may declare, and the largest file (or standard input) vet reads.
+- :data:`MAX_INPUT_BYTES` (``VET_MAX_INPUT_BYTES``, default 2 GiB): the pixel data any
+  input may declare.
+- :data:`MAX_DENSE_INPUT_BYTES` (``VET_MAX_DENSE_INPUT_BYTES``, default the machine's
+  memory): the pixel data a *dense* input may declare, one whose pixel data are at most
+  :data:`DENSE_RATIO` (8) times its bytes on disk, and the largest file (or standard
+  input) vet reads. Measured light (a large frame's whole measuring stream) compresses
+  about 3:1, so a 12-megapixel capture reads, while a small file still cannot claim
+  gigabytes: each such byte must be on disk.
 - :data:`MAX_COMPRESSION_RATIO` (``VET_MAX_COMPRESSION_RATIO``, default 100): declared
   pixel bytes per byte on disk, beyond the first :data:`SMALL_INPUT_BYTES` (64 MiB) that
   any file may declare (so a small constant test image still reads). Images of measured
@@ -36,8 +42,21 @@ def _env_int(name: str, default: int) -> int:
     return value if value > 0 else default
 
 
-#: Largest pixel data (bytes) one input may declare, and largest file read.
+def _memory_bytes() -> int:
+    """The machine's physical memory (bytes), or 16 GiB where it cannot be read."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return 16 * 1024**3
+
+
+#: Largest pixel data (bytes) any input may declare.
 MAX_INPUT_BYTES = _env_int("VET_MAX_INPUT_BYTES", 2 * 1024**3)
+#: Largest pixel data (bytes) a dense input (at most DENSE_RATIO:1) may declare, and the
+#: largest file read.
+MAX_DENSE_INPUT_BYTES = _env_int("VET_MAX_DENSE_INPUT_BYTES", _memory_bytes())
+#: Declared pixel bytes per byte on disk up to which an input is dense.
+DENSE_RATIO = 8
 #: Largest declared pixel bytes per byte of file on disk (beyond SMALL_INPUT_BYTES).
 MAX_COMPRESSION_RATIO = _env_int("VET_MAX_COMPRESSION_RATIO", 100)
 #: Pixel data any file may declare whatever its size on disk.
@@ -47,32 +66,50 @@ MAX_META_BYTES = 4 * 1024**2
 MAX_META_DEPTH = 32
 
 
-def check_size(nbytes: int, what: str) -> None:
-    """Refuse to allocate more than :data:`MAX_INPUT_BYTES` for one input.
+def check_size(nbytes: int, what: str, nbytes_on_disk: int | None = None) -> None:
+    """Refuse to allocate more than :data:`MAX_INPUT_BYTES` for one input, or, for an
+    input ``nbytes_on_disk`` long that is dense (``nbytes`` at most :data:`DENSE_RATIO`
+    times that), more than :data:`MAX_DENSE_INPUT_BYTES`.
 
     Raises
     ------
     FormatError
         ``nbytes`` is negative or over the limit.
     """
-    if nbytes < 0 or nbytes > MAX_INPUT_BYTES:
+    if 0 <= nbytes <= MAX_INPUT_BYTES:
+        return
+    if nbytes < 0:
+        raise FormatError(f"{what}: declares {nbytes} bytes of pixel data")
+    if nbytes > MAX_DENSE_INPUT_BYTES:
         raise FormatError(
             f"{what}: declares {nbytes} bytes of pixel data, over the limit of "
-            f"{MAX_INPUT_BYTES} (set VET_MAX_INPUT_BYTES to raise it)"
+            f"{MAX_DENSE_INPUT_BYTES} (set VET_MAX_DENSE_INPUT_BYTES to raise it)"
+        )
+    if nbytes_on_disk is None or nbytes > DENSE_RATIO * max(nbytes_on_disk, 0):
+        held = (
+            ""
+            if nbytes_on_disk is None
+            else f" from {nbytes_on_disk} bytes on disk ({nbytes / max(nbytes_on_disk, 1):.0f}:1)"
+        )
+        raise FormatError(
+            f"{what}: declares {nbytes} bytes of pixel data{held}, over the limit of "
+            f"{MAX_INPUT_BYTES} for inputs that compress more than {DENSE_RATIO}:1 (set "
+            "VET_MAX_INPUT_BYTES to raise it)"
         )
 
 
 def check_file_size(nbytes_on_disk: int, what: str) -> None:
-    """Refuse a file larger than :data:`MAX_INPUT_BYTES` before reading it."""
-    if nbytes_on_disk > MAX_INPUT_BYTES:
+    """Refuse a file larger than :data:`MAX_DENSE_INPUT_BYTES` before reading it."""
+    if nbytes_on_disk > MAX_DENSE_INPUT_BYTES:
         raise FormatError(
             f"{what}: file is {nbytes_on_disk} bytes, over the limit of "
-            f"{MAX_INPUT_BYTES} (set VET_MAX_INPUT_BYTES to raise it)"
+            f"{MAX_DENSE_INPUT_BYTES} (set VET_MAX_DENSE_INPUT_BYTES to raise it)"
         )
 
 
 def check_declared(nbytes: int, nbytes_on_disk: int, what: str) -> None:
-    """Check declared pixel bytes against :data:`MAX_INPUT_BYTES` and the bytes on disk.
+    """Check declared pixel bytes against the limits (:func:`check_size`) and the bytes
+    on disk.
 
     Parameters
     ----------
@@ -87,7 +124,7 @@ def check_declared(nbytes: int, nbytes_on_disk: int, what: str) -> None:
         Over the limit, or more than :data:`MAX_COMPRESSION_RATIO` times the bytes on disk
         (beyond :data:`SMALL_INPUT_BYTES`): a decompression bomb, refused before inflating.
     """
-    check_size(nbytes, what)
+    check_size(nbytes, what, nbytes_on_disk)
     allowed = max(SMALL_INPUT_BYTES, MAX_COMPRESSION_RATIO * max(nbytes_on_disk, 0))
     if nbytes > allowed:
         ratio = nbytes / max(nbytes_on_disk, 1)
