@@ -233,6 +233,27 @@ def test_a_dense_input_over_the_plain_limit_reads(tmp_path, small_capture, monke
             read_layered(tmp_path / name)
 
 
+def test_a_file_or_standard_input_over_the_dense_limit_is_refused(
+    tmp_path, small_capture, monkeypatch
+):
+    """VET_MAX_DENSE_INPUT_BYTES bounds a file's size before it is opened, and standard
+    input as it is spooled: exit 1 with one line naming the variable."""
+    from tests.conftest import run_vet
+
+    write_capture(tmp_path / "c.npz", small_capture)
+    size = (tmp_path / "c.npz").stat().st_size
+    monkeypatch.setattr(limits, "MAX_DENSE_INPUT_BYTES", size - 1)
+    with pytest.raises(FormatError, match=f"file is {size} bytes, over the limit of {size - 1}"):
+        read_layered(tmp_path / "c.npz")
+    monkeypatch.setenv("VET_MAX_DENSE_INPUT_BYTES", str(size - 1))
+    res = run_vet("info", "-", input=(tmp_path / "c.npz").read_bytes())
+    err = res.stderr.decode().strip().splitlines()
+    assert res.returncode == 1 and len(err) == 1
+    assert "standard input exceeds the input size limit (VET_MAX_DENSE_INPUT_BYTES)" in err[0]
+    monkeypatch.setenv("VET_MAX_DENSE_INPUT_BYTES", str(size))
+    assert run_vet("info", "-", input=(tmp_path / "c.npz").read_bytes()).returncode == 0
+
+
 def test_npz_with_foreign_members_is_refused(tmp_path):
     p = tmp_path / "x.npz"
     with zipfile.ZipFile(p, "w") as zf:

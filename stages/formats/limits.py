@@ -9,10 +9,10 @@ worker's memory or time:
   input may declare.
 - :data:`MAX_DENSE_INPUT_BYTES` (``VET_MAX_DENSE_INPUT_BYTES``, default the machine's
   memory): the pixel data a *dense* input may declare, one whose pixel data are at most
-  :data:`DENSE_RATIO` (8) times its bytes on disk, and the largest file (or standard
-  input) vet reads. Measured light (a large frame's whole measuring stream) compresses
-  about 3:1, so a 12-megapixel capture reads, while a small file still cannot claim
-  gigabytes: each such byte must be on disk.
+  :data:`DENSE_RATIO` times its bytes on disk, and the largest file (or standard input)
+  vet reads. Noisy measured light (a large frame's whole measuring stream) compresses
+  well under that ratio, so a large capture reads, while a small file still cannot claim
+  gigabytes: each eighth of them must be on disk.
 - :data:`MAX_COMPRESSION_RATIO` (``VET_MAX_COMPRESSION_RATIO``, default 100): declared
   pixel bytes per byte on disk, beyond the first :data:`SMALL_INPUT_BYTES` (64 MiB) that
   any file may declare (so a small constant test image still reads). Images of measured
