@@ -66,6 +66,32 @@ def _stream_capture(size: tuple[int, int], motion: str, seed: int):
     return simulate(scene, parse_motion(motion), RigParams(sensor_size=size), seed=seed)["vet"]
 
 
+@pytest.mark.parametrize("ext", ["exr", "npz"])
+def test_a_stream_is_read_into_one_array_with_no_copy_beside_it(tmp_path, monkeypatch, ext):
+    # The stream is most of a capture: read member by member (npz) or row block by row
+    # block (EXR, 4 of this small frame's 64 rows at a time) straight into the
+    # (B, H, W, C) array the capture holds, the reader's peak is that array and little
+    # more (a dict of 131 layers stacked after reading would be twice it).
+    import tracemalloc
+
+    from stages.formats import exr
+
+    monkeypatch.setattr(exr, "READ_ROWS", 4)
+    cap = _stream_capture((96, 64), "translate:30,0", 0)
+    path = tmp_path / f"cap.{ext}"
+    write_capture(path, cap)
+    tracemalloc.start()
+    try:
+        got = read_capture(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert got.measure.shape == cap.measure.shape and got.measure.flags.c_contiguous
+    np.testing.assert_allclose(got.measure, cap.measure, rtol=1e-3)
+    others = sum(a.nbytes for a in (got.I, got.T, got.truth, got.truth_motion))
+    assert peak < 1.25 * got.measure.nbytes + 2 * others, (peak, got.measure.nbytes, others)
+
+
 def test_exr_read_in_row_blocks_or_tiled_gives_the_same_layers(tmp_path, monkeypatch):
     # A stream's measuring images are a HALF part of their own; a scanline part is
     # decoded a block of rows at a time (a last block shorter); a tiled file (a vet EXR

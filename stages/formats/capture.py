@@ -45,6 +45,7 @@ from .. import __version__
 from ..cluster import in_order
 from ..errors import FormatError, InputError
 from ..rig import RigParams
+from .container import stack_of
 from .layered import Layered, read_layered, write_layered
 
 CAPTURE_FILENAMES = ("capture.exr", "capture.npz")
@@ -303,6 +304,11 @@ def _stack_layers(data: Layered, keys: list[str], what: str) -> np.ndarray:
     one at a time as they are copied in (the stack never sits beside all of them: a
     stream of 131 subframes is most of a capture's memory)."""
     first = data.layers[keys[0]]
+    stack = stack_of([data.layers[k] for k in keys])
+    if stack is not None:  # (read into one stack: taken as it is)
+        for k in keys:
+            del data.layers[k]
+        return stack
     dtype = np.result_type(*(data.layers[k].dtype for k in keys))
     for k in keys:
         if data.layers[k].shape != first.shape:

@@ -82,6 +82,44 @@ class Layered:
         return list(groups.values())
 
 
+def empty_layers(specs: dict[str, tuple[tuple[int, ...], np.dtype]]) -> dict[str, np.ndarray]:
+    """Uninitialised arrays for a reader to fill, one per ``{layer: (shape, dtype)}``.
+
+    The measuring images (:data:`MEASURING_LAYER`) that share one shape and type are views
+    of one stack ``(B, *shape)`` in the order of their numbers, so a capture takes them as
+    that array (:func:`stack_of`) and never holds a copy beside them: a stream of 131
+    subframes is most of a capture's memory."""
+    series = sorted(
+        (name for name in specs if MEASURING_LAYER.fullmatch(name)), key=lambda n: int(n[1:])
+    )
+    out: dict[str, np.ndarray] = {}
+    if len(series) >= 2 and len({specs[n] for n in series}) == 1:
+        shape, dtype = specs[series[0]]
+        stack = np.empty((len(series), *shape), dtype)
+        out.update((name, stack[b]) for b, name in enumerate(series))
+    for name, (shape, dtype) in specs.items():
+        if name not in out:
+            out[name] = np.empty(shape, dtype)
+    return {name: out[name] for name in specs}
+
+
+def stack_of(arrays: list[np.ndarray]) -> np.ndarray | None:
+    """The array ``arrays`` are the consecutive first-axis slices of, in order, when they
+    are exactly that (as :func:`empty_layers` makes them), else None."""
+    base = arrays[0].base if arrays else None
+    if (
+        not isinstance(base, np.ndarray)
+        or not base.flags.c_contiguous
+        or base.shape != (len(arrays), *arrays[0].shape)
+    ):
+        return None
+    start = base.__array_interface__["data"][0]
+    for b, a in enumerate(arrays):
+        if a.base is not base or a.__array_interface__["data"][0] != start + b * base.strides[0]:
+            return None
+    return base
+
+
 def channel_name(layer: str, ch: str) -> str:
     return f"{layer}.{ch}" if layer else ch
 

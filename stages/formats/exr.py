@@ -36,6 +36,7 @@ from .container import (
     Layered,
     SizeCheck,
     channel_name,
+    empty_layers,
     json_default,
     parse_meta,
     split_channel,
@@ -303,10 +304,15 @@ class _Part:
                 lay: np.ascontiguousarray(pixels[:, :, [i for _, i in chans]])
                 for lay, chans in groups.items()
             }
-        out = {
-            lay: np.empty((self.h, self.w, len(chans)), np.float16 if kept[lay] else np.float32)
-            for lay, chans in groups.items()
-        }
+        out = empty_layers(
+            {
+                lay: (
+                    (self.h, self.w, len(chans)),
+                    np.dtype(np.float16 if kept[lay] else np.float32),
+                )
+                for lay, chans in groups.items()
+            }
+        )
         fmt = "half" if all(self.half) else "float"  # (HALF values are exact as float)
         y, z = int(self.spec.y), int(self.spec.z)
         for r0 in range(0, self.h, READ_ROWS):

@@ -47,6 +47,7 @@ from .container import (
     SizeCheck,
     declared_measure_size,
     declared_size,
+    empty_layers,
     json_default,
     parse_meta,
 )
@@ -232,10 +233,18 @@ def read_npz(path: Path, what: str | None = None) -> Layered:
             total += math.prod(shape) * (dtype.itemsize if kept else max(dtype.itemsize, 4))
         limits.check_declared(total, on_disk, what)
         data = Layered(meta=meta)
+        # Each member inflated into its place (the stream's into one stack).
+        data.layers = empty_layers(
+            {
+                name: (shape, dtype if dtype in COMPACT_DTYPES else np.dtype(np.float32))
+                for name, (_, shape, dtype) in layers.items()
+            }
+        )
         infos_in_order = [info for info, _, _ in layers.values()]
         for name, arr in zip(layers, _npz_arrays(path, zf, infos_in_order, what), strict=True):
-            keep = arr.dtype if arr.dtype in COMPACT_DTYPES else np.float32
-            data.layers[name] = np.ascontiguousarray(arr, dtype=keep)
+            if arr.shape != data.layers[name].shape:
+                raise FormatError(f"{what}: member {name!r} does not hold the shape it declares")
+            np.copyto(data.layers[name], arr, casting="unsafe")
             data.channels[name] = [str(c) for c in channels[name]]
     return data
 
