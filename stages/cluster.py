@@ -66,7 +66,8 @@ def in_order(fn: Callable[[int], T], n: int, ahead: int = 1) -> Iterator[T]:
     :func:`solve_threads` threads with at most ``ahead`` calls per thread running or done
     beyond the one handed out (numpy, OpenCV and zlib release the GIL on large arrays, so
     independent pieces of work, such as a stream's time bins, share the cores; few are
-    held at once). Inline when one thread is allowed."""
+    held at once). Inline when one thread is allowed. The threads' freed memory is handed
+    back once all are done (:func:`trim_heap`)."""
     threads = min(solve_threads(), n)
     if threads <= 1:
         yield from (fn(k) for k in range(n))
@@ -80,6 +81,30 @@ def in_order(fn: Callable[[int], T], n: int, ahead: int = 1) -> Iterator[T]:
             yield done
         while pending:
             yield pending.popleft().result()
+    trim_heap()  # (what the threads freed: their arenas keep it resident otherwise)
+
+
+def trim_heap() -> None:
+    """Hand the C heap's free pages back to the system (glibc's ``malloc_trim(0)``; a no-op
+    where the C library has none). Arrays of a few megabytes freed by the threads of
+    :func:`in_order` stay in the allocator's arenas as resident memory; a stage that is
+    about to make large arrays of its own calls this first, so its peak is what it holds,
+    not what earlier stages freed."""
+    import ctypes
+    import ctypes.util
+
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        _MALLOC_TRIM = False
+        name = ctypes.util.find_library("c")
+        if name:
+            with contextlib.suppress(OSError, AttributeError):
+                _MALLOC_TRIM = ctypes.CDLL(name).malloc_trim
+    if _MALLOC_TRIM:
+        _MALLOC_TRIM(0)
+
+
+_MALLOC_TRIM: Any = None
 
 
 def limit_threads() -> None:

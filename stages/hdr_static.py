@@ -221,7 +221,7 @@ def _rate_from_measure(
     n_sub = int(cap.measure_counts()[:n0].sum())
     if n_sub != max(1, int(round(dur / rig.subframe_s))):  # a dropped subframe among them
         dur = n_sub * rig.subframe_s
-    m0 = cap.measure[:n0].astype(np.float32).sum(axis=0)
+    m0 = np.sum(cap.measure[:n0], axis=0, dtype=np.float32)  # (no float32 copy of them)
     rate = (m0 / g - np.float32(rig.dark_current_e_s * dur)) / np.float32(
         dur * rig.measure_fraction
     )
@@ -268,7 +268,7 @@ def fit_through_geometry(
     dur = n_sub * rig.subframe_s
     scale = dur * rig.measure_fraction
     dark = rig.dark_current_e_s * dur
-    m0 = raw.measure[:n0].astype(np.float32).sum(axis=0)
+    m0 = np.sum(raw.measure[:n0], axis=0, dtype=np.float32)
     # The VET image's pixels as electrons of the bin: rate * scale + dark.
     var_v = (np.maximum(vet_signal_e, 0) + rig.read_noise_e**2) / np.square(expo.astype(np.float64))
     w_v = np.where(vet_sat, 0.0, 1.0 / (var_v * scale**2))

@@ -90,7 +90,7 @@ def test_a_stream_reads_and_bins_the_same_on_one_thread_and_on_several(
     tmp_path, monkeypatch, stream_capture
 ):
     from stages.deblur.layers.bins import binned_work_frames, rate_frames
-    from stages.deblur.layers.paths import _groups
+    from stages.deblur.layers.paths import Groups
 
     path = tmp_path / "cap.npz"
     write_capture(path, stream_capture)
@@ -103,7 +103,7 @@ def test_a_stream_reads_and_bins_the_same_on_one_thread_and_on_several(
             cap.time_bins(7).measure,
             *rate_frames(cap),
             *binned_work_frames(cap, 5, 24)[:3],
-            _groups(cap.measure, cap.measure_times, cap.rig, 11)[0],
+            np.stack(list(Groups(cap.measure, cap.measure_times, cap.rig, 11).each())),
         )
     assert stream_capture.keeps_stream and got[1][0].shape[0] > 100
     for a, b in zip(got[1], got[3], strict=True):

@@ -345,7 +345,10 @@ def deblur(
             )
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
+    from ..cluster import trim_heap
     from .problem import bin_step, fit_bins, vet_step
+
+    trim_heap()  # (what the motion estimate freed, before the bins are made beside the stream)
 
     # Time bins of a stream that the misfit reads: short enough for the motion to blur
     # none of them by more than a fraction of a pixel.
@@ -435,12 +438,17 @@ def deblur(
             path_motion=opts.path_motion and motion is None and motion_model == "layer-paths",
             layer_motion=opts.layer_motion and motion is None and motion_model == "layers",
         )
-        obs = observations(
-            recorded, use_measure=opts.use_measure, stream=opts.stream_fit, n_bins=n_fit
-        )
-        if release_stream:  # (the motion and the bins are made: the stream is done with)
+        fit_src = recorded
+        if opts.use_measure and not opts.stream_fit and recorded.keeps_stream:
+            fit_src = recorded.time_bins(n_fit)  # (the bins the misfit reads, as it bins them)
+        if release_stream and fit_src.measure is not recorded.measure:
+            # The motion and the bins are made: the stream is done with (before the
+            # observations are made, so they are never held beside it).
             cap.measure = None
             recorded.measure = None
+        obs = observations(
+            fit_src, use_measure=opts.use_measure, stream=opts.stream_fit, n_bins=n_fit
+        )
         report: dict = {}
         L, vel = deblur_joint(
             obs,

@@ -13,33 +13,63 @@ def rate_frames(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     as :func:`stages.flow.motion_bins` bins it). One bin at a time: the per-channel rates
     and noise (:func:`stages.flow.measure_rates`) of a single bin are the only
     full-resolution colour arrays made."""
-    from ...flow import motion_bins
+    from ...formats.capture import MOTION_BINS
 
-    cap = motion_bins(cap)
-    nb, h, w = cap.measure.shape[:3]
+    # A stream's bins are summed each as it is read (no stack of them is made).
+    nb = MOTION_BINS if cap.keeps_stream else cap.measure.shape[0]
+    if cap.keeps_stream and cap.measure.shape[0] > nb:
+        one = lambda b: _bin_rate(cap.time_bin(nb, b), 0)  # noqa: E731
+    else:
+        nb = cap.measure.shape[0]
+        one = lambda b: _bin_rate(cap, b)  # noqa: E731
+    h, w = cap.measure.shape[1:3]
     lum = np.empty((nb, h, w), np.float32)
     noise = np.empty((nb, h, w), np.float32)
     valid = np.empty((nb, h, w), bool)
-    for b, parts in enumerate(in_order(lambda b: _bin_rate(cap, b), nb)):
+    for b, parts in enumerate(in_order(one, nb)):
         lum[b], noise[b], valid[b] = (a[0] for a in parts)
     return lum, noise, valid
 
 
+def rate_frame_centres(cap: Capture) -> np.ndarray:
+    """Centre times (B,) s of the bins :func:`rate_frames` reads."""
+    from ...formats.capture import MOTION_BINS, measure_bin_edges
+
+    mt = np.asarray(cap.measure_times, np.float64)
+    if cap.keeps_stream and len(mt) > MOTION_BINS:
+        edges = measure_bin_edges(len(mt), MOTION_BINS)
+        mt = np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
+    return mt.mean(axis=1)
+
+
+#: Rows of a bin whose colour rates are made at once (:func:`_bin_rate`).
+RATE_ROWS = 128
+
+
 def _bin_rate(cap: Capture, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`rate_frames` of bin ``b`` of ``cap`` (time bins) alone, each (1, H, W)."""
+    """:func:`rate_frames` of bin ``b`` of ``cap`` (time bins) alone, each (1, H, W),
+    made :data:`RATE_ROWS` rows at a time (the colour rates and noise of a strip are the
+    only colour arrays made: every value is a pixel's own)."""
     from dataclasses import replace
 
     from ...flow import measure_rates
 
-    one = replace(
-        cap,
-        measure=cap.measure[b : b + 1],
-        measure_times=cap.measure_times[b : b + 1],
-        meta={**cap.meta, "measure_subframes": [int(cap.measure_counts()[b])]},
-    )
-    rate, sigma, valid = measure_rates(one)
-    lum = rate.mean(axis=3)
-    noise = sigma.mean(axis=3) / np.float32(np.sqrt(rate.shape[3]))
+    meta = {**cap.meta, "measure_subframes": [int(cap.measure_counts()[b])]}
+    h, w, n_ch = cap.measure.shape[1:]
+    lum = np.empty((1, h, w), np.float32)
+    noise = np.empty((1, h, w), np.float32)
+    valid = np.empty((1, h, w), bool)
+    for r0 in range(0, h, RATE_ROWS):
+        r1 = min(h, r0 + RATE_ROWS)
+        strip = replace(
+            cap,
+            measure=cap.measure[b : b + 1, r0:r1],
+            measure_times=cap.measure_times[b : b + 1],
+            meta=meta,
+        )
+        rate, sigma, valid[:, r0:r1] = measure_rates(strip)
+        lum[:, r0:r1] = rate.mean(axis=3)
+        noise[:, r0:r1] = sigma.mean(axis=3) / np.float32(np.sqrt(n_ch))
     return lum, noise, valid
 
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...formats.capture import Capture
-from .bins import binned_work_frames, rate_frames, work_frames
+from .bins import binned_work_frames, rate_frame_centres, rate_frames, work_frames
 from .labels import SAME_LAYER_PX_S, assign_labels, kept_layers, merge_alike, refine_boundaries
 from .model_check import ModelCheck, layered_model_check
 from .velocities import dense_long_baseline, refine_velocity, velocity_modes
@@ -44,21 +44,20 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
     """Layered velocity field of a capture (see the module docstring)."""
     import cv2
 
-    from ...flow import motion_bins
-
-    binned = motion_bins(cap)
     h, w = cap.shape
-    lum, noise, valid_full = rate_frames(binned)
+    lum, noise, valid_full = rate_frames(cap)  # (a stream's motion bins, one at a time)
+    centres = rate_frame_centres(cap)
+    n_binned = len(centres)
     lv, slv, valid, (sx, sy) = work_frames(lum, noise, valid_full, MAX_WORK_PX)
+    del valid_full
     hw, ww = lv.shape[1:]
-    centres = binned.measure_times.mean(axis=1).astype(np.float64)
     votes, wts, vel_d, conf = dense_long_baseline(lv, slv, centres)
     # The track evidence: on TRACK_BINS bins of a stream, else on the same bins; the
     # boundaries at full resolution from them too where the frame is the working grid
     # (a larger frame's would hold all of them at full resolution: its motion bins').
     lum_t, noise_t, lvt, slvt, centres_t = lum, noise, lv, slv, centres
     centres_b = centres
-    if cap.keeps_stream and cap.measure.shape[0] > TRACK_BINS > binned.measure.shape[0]:
+    if cap.keeps_stream and cap.measure.shape[0] > TRACK_BINS > n_binned:
         if max(h, w) <= MAX_WORK_PX:  # (the working grid: full resolution, small)
             fine = cap.time_bins(TRACK_BINS)
             lum_t, noise_t, valid_t = rate_frames(fine)

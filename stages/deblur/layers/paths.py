@@ -66,46 +66,33 @@ MIN_PATH_SHARE = 0.05
 SWITCH_RATIO = 0.7
 
 
-@dataclass
-class TilePaths:
-    """The registration of the stream's groups (see the module docstring)."""
+class Groups:
+    """The stream summed over groups of consecutive subframes, as log DN (H, W) float32
+    above a floor of 3 read noises of a group (step 1), made one at a time as asked: all
+    of them (G frames) are never held at once.
 
-    mids: np.ndarray  # (G,) s, group mid-times
-    groups: np.ndarray  # (G, H, W) float32 log-compressed group sums
-    paths: np.ndarray  # (N, G, 2) px, each confident tile's displacement from group 0
-    layer_paths: list  # the paths most tiles follow, (G, 2) px each, most followed first
-    deviation_px: float  # the largest departure of those from a constant velocity
-    stream: tuple | None = None  # (measure, times, log floor): for the short start groups
-    main_deviation_px: float = 0.0  # that of the path most tiles follow
+    ``mids`` (G,) s are the groups' mid-times, ``floor`` the log floor (DN), ``first``
+    group 0 (the reference every later group is registered to)."""
 
-    @property
-    def changing(self) -> bool:
-        """Some layer's path leaves a constant velocity."""
-        return len(self.layer_paths) > 0 and self.deviation_px >= MIN_DEVIATION_PX
+    def __init__(self, measure: np.ndarray, times: np.ndarray, rig: RigParams, n_groups: int):
+        k_n = measure.shape[0]
+        edges = np.linspace(0, k_n, min(n_groups, k_n) + 1).round().astype(int)
+        self.spans = [(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+        per = k_n / max(len(self.spans), 1)
+        self.floor = float(3.0 * rig.gain_dn_per_e * float(rig.read_noise_e) * np.sqrt(per) + 1.0)
+        self.measure, self.times = measure, times
+        self.mids = np.asarray(
+            [0.5 * (float(times[a][0]) + float(times[b - 1][1])) for a, b in self.spans]
+        )
+        self.first = self[0]
 
-    @property
-    def main_changing(self) -> bool:
-        """The path most tiles follow leaves a constant velocity (camera shake): a
-        cautious test, since a minor cluster of tile paths (tiles straddling a moving
-        object's edge) can leave a constant velocity when no layer does."""
-        return len(self.layer_paths) > 0 and self.main_deviation_px >= MIN_DEVIATION_PX
+    def __len__(self) -> int:
+        return len(self.spans)
 
-
-def _groups(measure: np.ndarray, times: np.ndarray, rig: RigParams, n_groups: int):
-    """The stream summed over ``n_groups`` groups of consecutive subframes, as log DN
-    (G, H, W) float32 above a floor of 3 read noises of a group, each group's mid-time
-    (G,) s, and the floor. Filled group by group in place: the only frame-sized arrays
-    are the result and one group's sum."""
-    k_n = measure.shape[0]
-    edges = np.linspace(0, k_n, min(n_groups, k_n) + 1).round().astype(int)
-    spans = [(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
-    per = k_n / max(len(spans), 1)
-    floor = 3.0 * rig.gain_dn_per_e * float(rig.read_noise_e) * np.sqrt(per) + 1.0
-    comp = np.empty((len(spans), *measure.shape[1:3]), np.float32)
-    n_ch = measure.shape[3]
-
-    def fill(g: int) -> None:
-        a, b = spans[g]
+    def __getitem__(self, g: int) -> np.ndarray:
+        measure = self.measure
+        a, b = self.spans[g]
+        n_ch = measure.shape[3]
         acc = np.zeros(measure.shape[1:3], np.float32)
         mean = np.empty_like(acc)
         for k in range(a, b):
@@ -119,14 +106,38 @@ def _groups(measure: np.ndarray, times: np.ndarray, rig: RigParams, n_groups: in
                 np.add(mean, measure[k, ..., c], out=mean, dtype=np.float32)
             mean /= np.float32(n_ch)
             acc += mean
-        np.maximum(acc, 0.0, out=comp[g])
-        comp[g] += np.float32(floor)
-        np.log(comp[g], out=comp[g])
+        np.maximum(acc, 0.0, out=acc)
+        acc += np.float32(self.floor)
+        return np.log(acc, out=acc)
 
-    for _ in in_order(fill, len(spans)):  # (the groups on the process's threads)
-        pass
-    mids = [0.5 * (float(times[a][0]) + float(times[b - 1][1])) for a, b in spans]
-    return comp, np.asarray(mids), float(floor)
+    def each(self, start: int = 0):
+        """Groups ``start``, ``start + 1``, ... in order, made on the process's threads a
+        few at a time."""
+        return in_order(lambda g: self[start + g], len(self) - start)
+
+
+@dataclass
+class TilePaths:
+    """The registration of the stream's groups (see the module docstring)."""
+
+    mids: np.ndarray  # (G,) s, group mid-times
+    groups: Groups  # the log-compressed group sums, made as asked
+    paths: np.ndarray  # (N, G, 2) px, each confident tile's displacement from group 0
+    layer_paths: list  # the paths most tiles follow, (G, 2) px each, most followed first
+    deviation_px: float  # the largest departure of those from a constant velocity
+    main_deviation_px: float = 0.0  # that of the path most tiles follow
+
+    @property
+    def changing(self) -> bool:
+        """Some layer's path leaves a constant velocity."""
+        return len(self.layer_paths) > 0 and self.deviation_px >= MIN_DEVIATION_PX
+
+    @property
+    def main_changing(self) -> bool:
+        """The path most tiles follow leaves a constant velocity (camera shake): a
+        cautious test, since a minor cluster of tile paths (tiles straddling a moving
+        object's edge) can leave a constant velocity when no layer does."""
+        return len(self.layer_paths) > 0 and self.main_deviation_px >= MIN_DEVIATION_PX
 
 
 def _match(ref: np.ndarray, img: np.ndarray, x0: int, y0: int, guess: np.ndarray, r: int):
@@ -159,29 +170,33 @@ def tile_paths(measure: np.ndarray, times: np.ndarray, rig: RigParams) -> TilePa
 
     Each tile's patch in the first group is found in every later group by normalised
     cross-correlation within :data:`SEARCH_PX` of the position its path so far predicts
-    (the last step repeated), so paths of any length are followed."""
-    comp, mids, floor = _groups(measure, times, rig, GROUPS)
-    n_g, h, w = comp.shape
+    (the last step repeated), so paths of any length are followed. The groups are taken
+    in time order, every tile registered on each before the next is made."""
+    groups = Groups(measure, times, rig, GROUPS)
+    n_g = len(groups)
+    h, w = groups.first.shape
     ts = min(TILE_PX, h // 2, w // 2)
     stride = max(ts // 2, 1)
-    paths = []
+    tiles = []
     for y0 in range(SEARCH_PX, max(h - ts - SEARCH_PX, SEARCH_PX) + 1, stride):
         for x0 in range(SEARCH_PX, max(w - ts - SEARCH_PX, SEARCH_PX) + 1, stride):
-            ref = np.ascontiguousarray(comp[0, y0 : y0 + ts, x0 : x0 + ts])
-            if float(ref.std()) < 1e-3:
+            ref = np.ascontiguousarray(groups.first[y0 : y0 + ts, x0 : x0 + ts])
+            if float(ref.std()) >= 1e-3:
+                tiles.append((x0, y0, ref))
+    p = np.zeros((len(tiles), n_g, 2))
+    alive = np.ones(len(tiles), bool)
+    for g, comp in enumerate(groups.each(1), start=1):
+        for i, (x0, y0, ref) in enumerate(tiles):
+            if not alive[i]:
                 continue
-            p = np.zeros((n_g, 2))
-            ok = True
-            for g in range(1, n_g):
-                guess = p[g - 1] + (p[g - 1] - p[g - 2] if g >= 2 else 0.0)
-                found, peak = _match(ref, comp[g], x0, y0, guess, SEARCH_PX)
-                if found is None or peak < MIN_RESPONSE:
-                    ok = False
-                    break
-                p[g] = found
-            if ok:
-                paths.append(p)
-    arr = np.asarray(paths).reshape(-1, n_g, 2)
+            guess = p[i, g - 1] + (p[i, g - 1] - p[i, g - 2] if g >= 2 else 0.0)
+            found, peak = _match(ref, comp, x0, y0, guess, SEARCH_PX)
+            if found is None or peak < MIN_RESPONSE:
+                alive[i] = False
+            else:
+                p[i, g] = found
+    arr = p[alive].reshape(-1, n_g, 2)
+    mids = groups.mids
     found = _cluster(arr) if n_g >= 3 else []
     dev = main_dev = 0.0
     if found:
@@ -191,7 +206,7 @@ def tile_paths(measure: np.ndarray, times: np.ndarray, rig: RigParams) -> TilePa
         v = (lp * t[None, :, None]).sum(axis=1) / max(float((t * t).sum()), 1e-12)
         per_path = np.abs(lp - v[:, None, :] * t[None, :, None]).max(axis=(1, 2))
         dev, main_dev = float(per_path.max()), float(per_path[0])
-    return TilePaths(mids, comp, arr, found, dev, (measure, times, floor), main_dev)
+    return TilePaths(mids, groups, arr, found, dev, main_dev)
 
 
 def _cluster(paths: np.ndarray) -> list[np.ndarray]:
@@ -233,9 +248,7 @@ def _start(tp: TilePaths, mask: np.ndarray, path: np.ndarray) -> tuple[np.ndarra
     import cv2
 
     fallback = tp.mids[:3], path[:3]
-    if tp.stream is None:
-        return fallback
-    measure, times, floor = tp.stream
+    measure, times, floor = tp.groups.measure, tp.groups.times, tp.groups.floor
     m = cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8))
     b = 2 + int(np.ceil(np.abs(path).max()))
     m[:b], m[-b:], m[:, :b], m[:, -b:] = 0, 0, 0, 0
@@ -253,7 +266,7 @@ def _start(tp: TilePaths, mask: np.ndarray, path: np.ndarray) -> tuple[np.ndarra
         warp = np.array([[1, 0, guess[0]], [0, 1, guess[1]]], np.float32)
         try:
             _cc, warp = cv2.findTransformECC(
-                tp.groups[0], g.astype(np.float32), warp, cv2.MOTION_TRANSLATION, criteria, m, 5
+                tp.groups.first, g.astype(np.float32), warp, cv2.MOTION_TRANSLATION, criteria, m, 5
             )
         except cv2.error:
             return fallback
@@ -283,22 +296,33 @@ def path_layers(tp: TilePaths, frame_s: float) -> Layers | None:
     paths = list(tp.layer_paths)
     if not paths:
         return None
-    n_g, h, w = tp.groups.shape
+    n_g = len(tp.groups)
+    h, w = tp.groups.first.shape
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    costs = []
-    for p in paths:
-        pulled = np.empty((n_g, h, w), np.float32)
-        for g in range(n_g):
-            pulled[g] = cv2.remap(
-                tp.groups[g],
+    # Each path's spread of the pulled-back groups (their variance over the groups), from
+    # running sums of their departures from the first group: the groups in time order,
+    # none held beside the next.
+    first = tp.groups.first
+    s1 = np.zeros((len(paths), h, w), np.float32)
+    s2 = np.zeros_like(s1)
+    for g, comp in enumerate(tp.groups.each(1), start=1):
+        for k, p in enumerate(paths):
+            d = cv2.remap(
+                comp,
                 xx + np.float32(p[g, 0]),
                 yy + np.float32(p[g, 1]),
                 cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_REFLECT,
             )
-        spread = pulled.var(axis=0)
-        costs.append(cv2.blur(spread, (9, 9)))
-    cost = np.stack(costs)
+            d -= first  # (paths start at 0: group 0 pulled back is itself)
+            s1[k] += d
+            d *= d
+            s2[k] += d
+    s1 /= np.float32(n_g)
+    s2 /= np.float32(n_g)
+    s2 -= s1 * s1
+    cost = np.stack([cv2.blur(np.maximum(v, 0.0), (9, 9)) for v in s2])
+    del s1, s2
     label = np.zeros((h, w), np.int32)
     for k in range(1, len(paths)):
         better = cost[k] < SWITCH_RATIO * cost[label, yy.astype(int), xx.astype(int)]
