@@ -244,6 +244,31 @@ def test_the_measured_camera_path_is_refined_on_the_misfit(shared_hdr):
     assert rms(refined) < 0.75 * rms(measured)
 
 
+@pytest.mark.slow
+def test_the_camera_path_s_anchor_follows_the_early_samples(shared_hdr):
+    """The anchor D(0) is fitted to the early samples under a prior as wide as the start's
+    extrapolation errs (ANCHOR_PX): Cannon shake:4 at 320x240 comes within 1.2x of the
+    oracle's all-pixel RMS (a prior of 0.05 px held it at 1.37x)."""
+    from stages.deblur import deblur
+    from stages.metrics import measurable_floor, stops_error
+    from stages.rig import RigParams
+    from stages.scenes import load_scene
+    from stages.simulate import simulate
+
+    rig = RigParams(sensor_size=(320, 240))
+    scene = load_scene(str(shared_hdr / "Cannon.exr"), (320, 240))
+    cap = simulate(scene, parse_motion("shake:4"), rig, seed=0, methods=["vet"])["vet"]
+    floor = measurable_floor(rig, cap.radiance_scale)
+
+    def rms(img):
+        return stops_error(img.radiance, cap.truth, cap.T, rig.frame_s, floor=floor)["all"]["rms"]
+
+    got, _ = deblur(cap)
+    oracle, _ = deblur(cap, motion_init="truth")
+    assert got.meta["motion_model"] == "layer-paths"
+    assert rms(got) < 1.2 * rms(oracle)
+
+
 def test_path_search_keeps_the_best_state_and_shortens_after_a_worse_one():
     """PathSearch: a state is kept while its misfit is the lowest so far; a worse one
     brings back the best (image, path, residuals) and halves the next path step."""

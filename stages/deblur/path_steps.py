@@ -45,8 +45,10 @@ SMOOTH_REL = 1e-3
 
 
 #: How far (px) the registered path's anchor ``D(0)`` may be from the truth, a priori:
-#: the spread of the start's extrapolation (module docstring, "The anchor").
-ANCHOR_PX = 0.05
+#: the spread of the start's extrapolation (module docstring, "The anchor"), which the
+#: path steps move by up to a few tenths of a pixel in all; tighter, the prior holds the
+#: anchor where the extrapolation put it against what the early samples say.
+ANCHOR_PX = 0.2
 
 
 #: Each rejected path step halves the next one's length (:class:`PathSearch`).
