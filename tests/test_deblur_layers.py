@@ -512,6 +512,24 @@ def test_binned_work_frames_are_the_work_frames_of_the_time_bins():
     np.testing.assert_array_equal(got[4], bins.measure_times.mean(axis=1))
 
 
+def test_a_stream_s_rate_frames_are_those_of_its_motion_bins():
+    """rate_frames of a stream, each motion bin summed from the stream as its rates are
+    made (in row strips), equals rate_frames of the motion bins made at once; the centres
+    are those bins' times; the times of time bins come without summing them."""
+    from stages.deblur.layers.bins import RATE_ROWS, rate_frame_centres, rate_frames
+    from stages.flow import motion_bins
+
+    cap = _vet(builtin_chart(200, 150), "translate:30,0", seed=0)
+    assert cap.keeps_stream and cap.shape[0] > RATE_ROWS  # (more than one strip)
+    bins = motion_bins(cap)
+    for g, w in zip(rate_frames(cap), rate_frames(bins), strict=True):
+        assert g.shape[0] == bins.measure.shape[0] < cap.measure.shape[0]
+        np.testing.assert_array_equal(g, w)
+    np.testing.assert_array_equal(rate_frame_centres(cap), bins.measure_times.mean(axis=1))
+    np.testing.assert_array_equal(cap.bin_times(16), cap.time_bins(16).measure_times)
+    np.testing.assert_array_equal(bins.bin_times(16), bins.measure_times)
+
+
 def test_a_velocity_mode_of_a_few_percent_of_the_votes_is_a_candidate():
     """:func:`velocity_modes` keeps a mode holding :data:`MIN_MODE_SHARE` of the confident
     votes' weight: a faintly textured object gives few confident votes, but they agree."""

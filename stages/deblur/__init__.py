@@ -449,8 +449,9 @@ def deblur(
         obs = observations(
             fit_src, use_measure=opts.use_measure, stream=opts.stream_fit, n_bins=n_fit
         )
-        if release_stream:  # (a capture of time bins: the observations hold what they need)
-            cap.measure = recorded.measure = fit_src = None
+        del fit_src  # (the observations hold what they need of the bins)
+        if release_stream:  # (a capture of time bins, let go once observed)
+            cap.measure = recorded.measure = None
         report: dict = {}
         L, vel = deblur_joint(
             obs,

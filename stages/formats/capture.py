@@ -132,14 +132,22 @@ class Capture:
 
         for _ in in_order(fill, len(bins)):  # (the bins on the process's threads)
             pass
-        mt = np.asarray(self.measure_times, np.float64)
-        times = np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
+        times = self.bin_times(n_bins)
         n = self.measure_counts()
         meta = dict(self.meta)
         meta["measure_subframes"] = [
             int(n[a:b].sum()) for a, b in zip(edges[:-1], edges[1:], strict=True)
         ]
         return replace(self, measure=bins, measure_times=times, meta=meta)
+
+    def bin_times(self, n_bins: int) -> np.ndarray:
+        """The ``[start, end)`` times (B, 2) s of :meth:`time_bins` ``(n_bins)``'s
+        measuring images, without summing them."""
+        mt = np.asarray(self.measure_times, np.float64)
+        if len(mt) <= n_bins:
+            return mt
+        edges = measure_bin_edges(len(mt), n_bins)
+        return np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
 
     def time_bin(self, n_bins: int, k: int) -> Capture:
         """Bin ``k`` of :meth:`time_bins` ``(n_bins)`` alone, as a capture of one

@@ -13,14 +13,11 @@ def rate_frames(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     as :func:`stages.flow.motion_bins` bins it). One bin at a time: the per-channel rates
     and noise (:func:`stages.flow.measure_rates`) of a single bin are the only
     full-resolution colour arrays made."""
-    from ...formats.capture import MOTION_BINS
-
     # A stream's bins are summed each as it is read (no stack of them is made).
-    nb = MOTION_BINS if cap.keeps_stream else cap.measure.shape[0]
-    if cap.keeps_stream and cap.measure.shape[0] > nb:
+    nb = _motion_bin_count(cap)
+    if nb < cap.measure.shape[0]:
         one = lambda b: _bin_rate(cap.time_bin(nb, b), 0)  # noqa: E731
     else:
-        nb = cap.measure.shape[0]
         one = lambda b: _bin_rate(cap, b)  # noqa: E731
     h, w = cap.measure.shape[1:3]
     lum = np.empty((nb, h, w), np.float32)
@@ -33,13 +30,16 @@ def rate_frames(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def rate_frame_centres(cap: Capture) -> np.ndarray:
     """Centre times (B,) s of the bins :func:`rate_frames` reads."""
-    from ...formats.capture import MOTION_BINS, measure_bin_edges
+    return cap.bin_times(_motion_bin_count(cap)).mean(axis=1)
 
-    mt = np.asarray(cap.measure_times, np.float64)
-    if cap.keeps_stream and len(mt) > MOTION_BINS:
-        edges = measure_bin_edges(len(mt), MOTION_BINS)
-        mt = np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
-    return mt.mean(axis=1)
+
+def _motion_bin_count(cap: Capture) -> int:
+    """How many bins :func:`stages.flow.motion_bins` makes of ``cap``: a stream's
+    :data:`~stages.formats.capture.MOTION_BINS` (or fewer subframes), else its images."""
+    from ...formats.capture import MOTION_BINS
+
+    n = cap.measure.shape[0]
+    return min(n, MOTION_BINS) if cap.keeps_stream else n
 
 
 #: Rows of a bin whose colour rates are made at once (:func:`_bin_rate`).
