@@ -304,21 +304,28 @@ class MeasureGeometry:
         centre lands in, through measurement -> VET -> LCoS), and, for the cells smaller
         than a pixel that no pixel centre lands in, a CSR list pixel -> extra cells
         (``starts`` of length ``Hm Wm + 1``, ``cells``): the pixel that images the cell's
-        centre governs it too. Only cells some VET pixel uses are listed.
+        centre governs it too. Every cell whose centre lands on the VET sensor
+        (``cellmap_vet``'s frame, within a pixel of it) is governed, not only those whose
+        cell holds a VET pixel centre in the host's homography: a homography known to a
+        hundredth of a pixel still puts some pixel centres in a neighbouring cell, which
+        must close with its pixel too.
         """
         rig = self.rig
         cm = CellMap(
             np.asarray(rig.homography), rig.lcos_cells, self.shape_m, points=(self.xv, self.yv)
         )
-        used = np.unique(cellmap_vet.pixel_cell)
-        used = used[used < cm.n_cells]
-        owned = np.zeros(cm.n_cells + 1, bool)
-        owned[cm.pixel_cell.ravel()] = True
-        orphans = used[~owned[used]]
+        owned = np.zeros(cm.n_cells, bool)
+        got = cm.pixel_cell.ravel()
+        owned[got[got < cm.n_cells]] = True
         cw = rig.lcos_cells[0]
-        centres = np.stack([orphans % cw + 0.5, orphans // cw + 0.5, np.ones(orphans.size)])
+        cells = np.flatnonzero(~owned)
+        centres = np.stack([cells % cw + 0.5, cells // cw + 0.5, np.ones(cells.size)])
         hv = np.asarray(rig.homography, float) @ centres
-        ux, uy = _apply_h(np.linalg.inv(measure_homography(rig)), hv[0] / hv[2], hv[1] / hv[2])
+        vx, vy = hv[0] / hv[2], hv[1] / hv[2]
+        h, w = cellmap_vet.pixel_cell.shape[:2]
+        on = (vx >= -1) & (vx < w + 1) & (vy >= -1) & (vy < h + 1)
+        orphans, vx, vy = cells[on], vx[on], vy[on]
+        ux, uy = _apply_h(np.linalg.inv(measure_homography(rig)), vx, vy)
         dx, dy = distort(ux, uy, self.shape_m, rig.measure_k1, rig.measure_k2)
         hm, wm = self.shape_m
         px = np.clip(np.floor(dx).astype(np.int64), 0, wm - 1)

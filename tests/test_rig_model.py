@@ -261,6 +261,28 @@ def test_host_thresholds_the_cell_the_measuring_pixels_see():
     assert (my, mx) != (20, 30) or cm.pixel_cell[my, mx] != cm.pixel_cell[20, 30]
 
 
+def test_the_host_governs_every_cell_a_pixel_centre_could_fall_in():
+    """Cells smaller than a pixel: a homography off by a hundredth of a pixel puts VET
+    pixel centres in cells that no centre of the host's own map falls in. The host still
+    thresholds every one of them (each on the measuring pixel that images its centre)."""
+    w, h = 96, 80
+    rig = rig_profile("realistic", (w, h))  # 1024 x 600 cells: about 0.1 px each
+    truth = np.asarray(rig.homography, float)
+    off = truth.copy()
+    off[:2, 2] += 0.01
+    host = rig.replace(homography=off.tolist())
+    cm_m, starts, extra = MeasureGeometry(host).host_cells(CellMap.for_rig(host, (h, w)))
+    governed = np.zeros(cm_m.n_cells + 1, bool)
+    governed[cm_m.pixel_cell.ravel()] = True
+    governed[extra] = True
+    used = np.unique(CellMap(truth, rig.lcos_cells, (h, w)).pixel_cell)
+    used = used[used < cm_m.n_cells]
+    host_used = np.unique(CellMap.for_rig(host, (h, w)).pixel_cell)
+    assert np.setdiff1d(used, host_used).size > 100  # the two maps disagree ...
+    assert governed[used].all()  # ... and every cell the truth uses closes
+    assert np.all(np.diff(starts) >= 0) and starts[-1] == extra.size
+
+
 def run_cli(*args):
     from click.testing import CliRunner
 

@@ -30,7 +30,12 @@ Example:
 )
 @click.option("--rig", "rig_spec", required=True, help="'sim' or a rig TOML file.")
 @click.option("-o", "--output", required=True, help="Capture folder (created if missing).")
-@click.option("--calibration", default=None, help="Calibration file from vet calibrate.")
+@click.option(
+    "--calibration",
+    default=None,
+    help="Calibration file from vet calibrate: the rig's parameters as it found them, which "
+    "the capture thresholds with and records (the emulated rig's own physics is its truth).",
+)
 @click.option(
     "--scene", default="builtin:interior", show_default=True, help="[sim] Scene to render."
 )
@@ -103,14 +108,24 @@ def cli(
     profile = rig_profile_choice(kwargs)
     overrides = rig_overrides(kwargs)
     cal = None
+    known: dict = {}
+    true_homography = None
     if calibration:
         from stages.calibrate import calibration_changes, read_calibration
 
         cal = read_calibration(calibration)
-        overrides.update(calibration_changes(cal))
-        if rig_spec == "sim" and size is None:
-            # The emulated rig is the calibrated one: its sensor, the scene resampled to it.
-            size = tuple(int(v) for v in cal.sensor_size)
+        known = calibration_changes(cal)  # what the host thresholds and records with
+        if rig_spec == "sim":
+            # The emulated rig is the one calibrated: its sensor (the scene resampled to
+            # it) and, where the calibration was made on it, its truth, which the
+            # calibration only estimated.
+            if size is None:
+                size = tuple(int(v) for v in cal.sensor_size)
+            overrides.setdefault("lcos_cells", tuple(cal.lcos_cells))
+            truth = dict(cal.provenance.get("emulated_truth") or {})
+            true_homography = truth.pop("homography", None)
+            for k, v in truth.items():
+                overrides.setdefault(k, v)
     sim = SimOptions(
         scene=scene,
         motion=motion,
@@ -121,8 +136,9 @@ def cli(
         disconnect_at_subframe=disconnect_at,
         overrides=overrides,
         profile=profile,
+        true_homography=true_homography,
     )
-    with open_rig(rig_spec, sim) as rig:
+    with open_rig(rig_spec, sim, known) as rig:
         if cal is not None and tuple(cal.sensor_size) != tuple(rig.params.sensor_size):
             from stages.errors import InputError
 

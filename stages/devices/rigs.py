@@ -285,10 +285,11 @@ def _camera(section: dict[str, Any], where: str, period_s: float) -> Camera:
     )
 
 
-def open_hardware_rig(path: str | Path) -> Rig:
-    """Open the devices a rig file describes."""
+def open_hardware_rig(path: str | Path, changes: dict[str, Any] | None = None) -> Rig:
+    """Open the devices a rig file describes; ``changes`` (RigParams fields: the command's
+    rig options, a calibration's parts) take precedence over its ``[params]``."""
     data = load_rig_file(path)
-    params = RigParams.from_dict(dict(data.get("params", {})))
+    params = RigParams.from_dict({**dict(data.get("params", {})), **dict(changes or {})})
     lc = data["lcos"]
     link = {k: lc[k] for k in ("ack_timeout_s", "max_retries") if k in lc}
     lcos = SerialLCoS(
@@ -312,8 +313,24 @@ def open_hardware_rig(path: str | Path) -> Rig:
     )
 
 
-def open_rig(spec: str, sim: SimOptions | None = None) -> Rig:
-    """``"sim"`` -> the emulated rig (with ``sim`` options); else a rig TOML file."""
-    if spec == "sim":
-        return open_sim_rig(sim or SimOptions())
-    return open_hardware_rig(spec)
+def open_rig(spec: str, sim: SimOptions | None = None, known: dict[str, Any] | None = None) -> Rig:
+    """``"sim"`` -> the emulated rig (with ``sim`` options); else a rig TOML file (with
+    ``sim.overrides``, the command's rig options).
+
+    ``known``: RigParams fields the host knows from a calibration
+    (:func:`stages.calibrate.calibration_changes`). The rig's ``params`` (what the capture
+    loop thresholds with, and what a capture records for its reconstructions) take them;
+    the emulated rig's physics does not: its truth stays what ``sim`` configures, so a
+    calibration's errors reach the capture as they would on hardware.
+    """
+    if spec != "sim":
+        over = dict(sim.overrides) if sim is not None else {}
+        return open_hardware_rig(spec, {**over, **dict(known or {})})
+    rig = open_sim_rig(sim or SimOptions())
+    if known:
+        try:
+            rig.params = rig.params.replace(**known)
+        except BaseException:
+            rig.close()
+            raise
+    return rig

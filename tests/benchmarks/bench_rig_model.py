@@ -86,9 +86,10 @@ def capture_chain(size: tuple[int, int] = (320, 240)) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
         for src in _scenes():
             out = {"scene": Path(src).stem}
-            for name, profile, over in (("ideal", "ideal", {}), ("real", "realistic", changes)):
-                opts = SimOptions(scene=src, size=size, profile=profile, overrides=dict(over))
-                with open_rig("sim", opts) as rig:
+            for name, profile, known in (("ideal", "ideal", {}), ("real", "realistic", changes)):
+                # The emulated rig keeps its truth; the host knows what calibration found.
+                opts = SimOptions(scene=src, size=size, profile=profile)
+                with open_rig("sim", opts, known=known) as rig:
                     cap = capture_frame(rig, Path(tmp) / f"{out['scene']}-{name}", raw_stream=False)
                 for assume in (False, True) if name == "real" else (False,):
                     img = hdr_static(cap, assume_ideal_rig=assume)
