@@ -234,6 +234,11 @@ def _apply(m, img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out.reshape(shape + img.shape[2:])
 
 
+#: How far (VET px) from a pixel centre the host still thresholds an LCoS cell: a
+#: calibrated homography's error (``vet calibrate``: hundredths of a pixel) with a margin.
+HOST_CELL_MARGIN_PX = 0.1
+
+
 class MeasureGeometry:
     """The measurement camera against the VET sensor, maps computed once.
 
@@ -304,27 +309,37 @@ class MeasureGeometry:
         centre lands in, through measurement -> VET -> LCoS), and, for the cells smaller
         than a pixel that no pixel centre lands in, a CSR list pixel -> extra cells
         (``starts`` of length ``Hm Wm + 1``, ``cells``): the pixel that images the cell's
-        centre governs it too. Every cell whose centre lands on the VET sensor
-        (``cellmap_vet``'s frame, within a pixel of it) is governed, not only those whose
-        cell holds a VET pixel centre in the host's homography: a homography known to a
-        hundredth of a pixel still puts some pixel centres in a neighbouring cell, which
-        must close with its pixel too.
+        centre governs it too. Listed are the cells within :data:`HOST_CELL_MARGIN_PX` of
+        a VET pixel centre of ``cellmap_vet``'s grid (sampled at that spacing), not only
+        those a centre lands in through the host's homography: a homography known to a
+        hundredth of a pixel puts some pixel centres in a neighbouring cell, which must
+        close with its pixel too.
         """
         rig = self.rig
-        cm = CellMap(
-            np.asarray(rig.homography), rig.lcos_cells, self.shape_m, points=(self.xv, self.yv)
-        )
-        owned = np.zeros(cm.n_cells, bool)
-        got = cm.pixel_cell.ravel()
-        owned[got[got < cm.n_cells]] = True
-        cw = rig.lcos_cells[0]
-        cells = np.flatnonzero(~owned)
-        centres = np.stack([cells % cw + 0.5, cells // cw + 0.5, np.ones(cells.size)])
-        hv = np.asarray(rig.homography, float) @ centres
-        vx, vy = hv[0] / hv[2], hv[1] / hv[2]
+        hom = np.asarray(rig.homography, float)
+        cm = CellMap(hom, rig.lcos_cells, self.shape_m, points=(self.xv, self.yv))
         h, w = cellmap_vet.pixel_cell.shape[:2]
-        on = (vx >= -1) & (vx < w + 1) & (vy >= -1) & (vy < h + 1)
-        orphans, vx, vy = cells[on], vx[on], vy[on]
+        yy, xx = np.mgrid[0:h, 0:w] + 0.5
+        d = HOST_CELL_MARGIN_PX
+        near = np.unique(
+            np.concatenate(
+                [
+                    CellMap(
+                        hom, rig.lcos_cells, (h, w), points=(xx + dx, yy + dy)
+                    ).pixel_cell.ravel()
+                    for dx in (-d, 0.0, d)
+                    for dy in (-d, 0.0, d)
+                ]
+            )
+        )
+        near = near[near < cm.n_cells]
+        owned = np.zeros(cm.n_cells + 1, bool)
+        owned[cm.pixel_cell.ravel()] = True
+        orphans = near[~owned[near]]
+        cw = rig.lcos_cells[0]
+        centres = np.stack([orphans % cw + 0.5, orphans // cw + 0.5, np.ones(orphans.size)])
+        hv = hom @ centres
+        vx, vy = hv[0] / hv[2], hv[1] / hv[2]
         ux, uy = _apply_h(np.linalg.inv(measure_homography(rig)), vx, vy)
         dx, dy = distort(ux, uy, self.shape_m, rig.measure_k1, rig.measure_k2)
         hm, wm = self.shape_m
