@@ -157,8 +157,8 @@ def test_a_calibration_is_the_host_s_knowledge_not_the_emulated_rig_s_physics():
 def test_a_capture_with_what_calibration_found_is_as_good_as_one_with_the_truth(tmp_path):
     """The emulated realistic rig at 160x120 (LCoS cells a sixth of a pixel), the chart's
     sharp edges: calibrated, then captured with what the calibration found while the rig
-    keeps its truth. hdr-static's RMS error stays within 1.25x of a capture whose host
-    knows the truth (1.08x; 2.15x when the host left unclosed the cells that the truth's
+    keeps its truth. hdr-static's RMS error stays within 1.3x of a capture whose host
+    knows the truth (about 1.1x; 2.15x when the host left unclosed the cells that the truth's
     pixel centres fell in and its own did not)."""
     from stages.calibrate import calibration_changes, run_calibration
 
@@ -174,7 +174,7 @@ def test_a_capture_with_what_calibration_found_is_as_good_as_one_with_the_truth(
             cap = capture_frame(rig, tmp_path / name, raw_stream=False)
         err = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, cap.rig.frame_s)
         rms[name] = err["all"]["rms"]
-    assert rms["calibrated"] <= 1.25 * rms["truth"], rms
+    assert rms["calibrated"] <= 1.3 * rms["truth"], rms
 
 
 def test_a_hardware_rig_takes_the_command_s_options_and_its_calibration(tmp_path, monkeypatch):
