@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from stages.calibrate import read_calibration
+from stages.calibrate import read_calibration, write_calibration
 from stages.capture import capture_frame
 from stages.devices.rigs import SimOptions, load_rig_file, open_rig
 from stages.errors import DeviceError, InputError
@@ -157,9 +157,10 @@ def test_a_calibration_is_the_host_s_knowledge_not_the_emulated_rig_s_physics():
 def test_a_capture_with_what_calibration_found_is_as_good_as_one_with_the_truth(tmp_path):
     """The emulated realistic rig at 160x120 (LCoS cells a sixth of a pixel), the chart's
     sharp edges: calibrated, then captured with what the calibration found while the rig
-    keeps its truth. hdr-static's RMS error stays within 1.3x of a capture whose host
-    knows the truth (about 1.1x; 2.15x when the host left unclosed the cells that the truth's
-    pixel centres fell in and its own did not)."""
+    keeps its truth. hdr-static's RMS error stays within 1.6x of a capture whose host
+    knows the truth (1.1-1.35x over repeated runs, the capture's timing varying; 2.15-3.3x
+    when the host left unclosed the cells that the truth's pixel centres fell in and its
+    own did not)."""
     from stages.calibrate import calibration_changes, run_calibration
 
     size = (160, 120)
@@ -174,7 +175,7 @@ def test_a_capture_with_what_calibration_found_is_as_good_as_one_with_the_truth(
             cap = capture_frame(rig, tmp_path / name, raw_stream=False)
         err = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, cap.rig.frame_s)
         rms[name] = err["all"]["rms"]
-    assert rms["calibrated"] <= 1.3 * rms["truth"], rms
+    assert rms["calibrated"] <= 1.6 * rms["truth"], rms
 
 
 def test_a_hardware_rig_takes_the_command_s_options_and_its_calibration(tmp_path, monkeypatch):
@@ -238,6 +239,14 @@ def test_calibration_feeds_capture_and_size_mismatch_is_refused(tmp_path):
     res = run_vet("capture", "--rig", "sim", "--calibration", cal, "-o", tmp_path / "e")
     assert res.returncode == 0, res.stderr
     assert read_capture(tmp_path / "e").shape == (80, 96)
+    # A damaged record of the emulated truth: one line, exit 1.
+    found.provenance["emulated_truth"] = {"leakage": "high"}
+    write_calibration(tmp_path / "bad.npz", found)
+    res = run_vet(
+        "capture", "--rig", "sim", "--calibration", tmp_path / "bad.npz", "-o", tmp_path / "f"
+    )
+    assert res.returncode == 1 and b"emulated rig's truth is damaged" in res.stderr
+    assert b"Traceback" not in res.stderr
 
 
 def RigParamsDefault(w, h):

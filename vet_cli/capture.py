@@ -109,9 +109,8 @@ def cli(
     overrides = rig_overrides(kwargs)
     cal = None
     known: dict = {}
-    true_homography = None
     if calibration:
-        from stages.calibrate import calibration_changes, read_calibration
+        from stages.calibrate import calibration_changes, emulated_rig_truth, read_calibration
 
         cal = read_calibration(calibration)
         known = calibration_changes(cal)  # what the host thresholds and records with
@@ -122,9 +121,7 @@ def cli(
             if size is None:
                 size = tuple(int(v) for v in cal.sensor_size)
             overrides.setdefault("lcos_cells", tuple(cal.lcos_cells))
-            truth = dict(cal.provenance.get("emulated_truth") or {})
-            true_homography = truth.pop("homography", None)
-            for k, v in truth.items():
+            for k, v in emulated_rig_truth(cal, calibration).items():
                 overrides.setdefault(k, v)
     sim = SimOptions(
         scene=scene,
@@ -136,7 +133,6 @@ def cli(
         disconnect_at_subframe=disconnect_at,
         overrides=overrides,
         profile=profile,
-        true_homography=true_homography,
     )
     with open_rig(rig_spec, sim, known) as rig:
         if cal is not None and tuple(cal.sensor_size) != tuple(rig.params.sensor_size):

@@ -51,6 +51,7 @@ from .calfile import (
     apply_calibration,
     calibration_changes,
     calibration_overrides,
+    emulated_rig_truth,
     read_calibration,
     write_calibration,
 )
@@ -92,6 +93,7 @@ __all__ = [
     "calibration_overrides",
     "compare_parts_to_truth",
     "compare_to_truth",
+    "emulated_rig_truth",
     "dark_model",
     "decode_gray",
     "example_homography",

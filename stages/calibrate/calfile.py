@@ -224,6 +224,27 @@ def calibration_changes(cal: Calibration, params: RigParams | None = None) -> di
     return out
 
 
+def emulated_rig_truth(cal: Calibration, what: str = "calibration") -> dict[str, Any]:
+    """The RigParams fields of the emulated rig that ``cal`` was made on (its provenance's
+    ``emulated_truth``; empty for a real rig's): the physics ``vet capture --rig sim
+    --calibration`` gives its emulated rig, whose host knows only
+    :func:`calibration_changes`. FormatError if the record is damaged."""
+    import dataclasses
+
+    truth = cal.provenance.get("emulated_truth") or {}
+    if not isinstance(truth, dict):
+        raise FormatError(f"{what}: its record of the emulated rig's truth is damaged")
+    names = {f.name for f in dataclasses.fields(RigParams)}
+    out = {k: v for k, v in truth.items() if k in names}
+    try:
+        RigParams(**out)
+    except (InputError, TypeError, ValueError) as exc:
+        raise FormatError(
+            f"{what}: its record of the emulated rig's truth is damaged ({exc})"
+        ) from None
+    return out
+
+
 def calibration_overrides(path: str | Path) -> dict[str, Any]:
     """RigParams overrides from a calibration file (for ``vet capture --calibration``).
 
