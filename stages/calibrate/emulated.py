@@ -129,7 +129,8 @@ def calibrate_sim(
     """Calibrate the emulated rig and record how far the result is from its truth.
 
     Parameters are those of :func:`open_sim_calibration_rig`. The provenance gets
-    ``emulated_truth`` (the true homography, leakage, dark current, gain ratio) and
+    ``emulated_truth`` (the true homography, leakage, dark current, gain ratio and the
+    parts of a real rig: what ``vet capture --rig sim`` rebuilds the rig from) and
     ``errors_vs_truth`` (:func:`compare_to_truth`). A rig ``profile`` with the parts of
     a real rig (:func:`stages.optics.rig_profile`) has them found too, on frames the
     emulated rig's physics records (:func:`.parts.calibrate_parts`): ``parts`` and
@@ -143,11 +144,15 @@ def calibrate_sim(
         cal, frames = calibrate_rig_frames(rig, progress, settings)
         p = rig.params
         true_h = np.asarray(p.homography if true_homography is None else true_homography, float)
+    from ..optics import PARTS
+
+    d = p.to_dict()
     cal.provenance["emulated_truth"] = {
         "homography": true_h.tolist(),
         "leakage": p.leakage,
         "dark_current_e_s": p.dark_current_e_s,
         "measure_fraction": p.measure_fraction,
+        **{k: d[k] for k in PARTS if k in d},
     }
     cal.provenance["errors_vs_truth"] = compare_to_truth(
         cal, true_h, p.leakage, p.dark_current_e_s, p.measure_fraction
