@@ -47,8 +47,12 @@ def realistic_parts(sensor_size: tuple[int, int]) -> dict[str, Any]:
     rotation, scale and shift between them, mild barrel distortion, a slightly lower gain
     and vignetting on the measurement arm, relay blur of about a pixel, leakage varying
     from cell to cell about its mean, milliseconds of switching, a trigger offset of a
-    fraction of a millisecond with jitter, rare dropped frames. RigParams fields, as a
-    dict (pixel quantities in the given sensor's pixels).
+    fraction of a millisecond with jitter, rare dropped frames; and the LCoS grid in the
+    published rig's proportion to the sensor (1024 x 600 cells on 1280 x 1024 pixels: a
+    cell 1.25 x 1.7 pixels at any size, so that a working size is that rig scaled down,
+    not one whose cells are finer than its pixels, which no Gray code can calibrate to a
+    fraction of a cell). RigParams fields, as a dict (pixel quantities in the given
+    sensor's pixels).
     """
     w, h = sensor_size
     cx, cy = w / 2.0, h / 2.0
@@ -61,6 +65,7 @@ def realistic_parts(sensor_size: tuple[int, int]) -> dict[str, Any]:
         [0.0, 0.0, 1.0],
     ]
     return {
+        "lcos_cells": (max(1, round(w * 1024 / 1280)), max(1, round(h * 600 / 1024))),
         "measure_size": (w, h),
         "measure_homography": hom,
         "measure_k1": -0.05,
@@ -236,7 +241,7 @@ def _apply(m, img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 #: How far (VET px) from a pixel centre the host still thresholds an LCoS cell: a
 #: calibrated homography's error (``vet calibrate``: hundredths of a pixel) with a margin.
-HOST_CELL_MARGIN_PX = 0.1
+HOST_CELL_MARGIN_PX = 0.05
 
 
 class MeasureGeometry:

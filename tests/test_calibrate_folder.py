@@ -105,7 +105,7 @@ def test_folder_calibration_finds_the_parts_of_the_emulated_rig(calibrated):
     assert fit["mapping"]["poses"] == ["pose 00", "pose 01"] and fit["mapping"]["corners"] == 864
     assert fit["switching"]["closures"] == [20] and fit["switching"]["windows"] == 29
     # apply_calibration puts them in the rig, and vet info shows them.
-    rig = c.apply_calibration(RigParams(sensor_size=SIZE), cal)
+    rig = c.apply_calibration(RigParams(sensor_size=SIZE, lcos_cells=truth.lcos_cells), cal)
     assert rig.switch_s == cal.parts["switch_s"] and rig.measure_k1 == cal.parts["measure_k1"]
     info = run_cli("info", out)
     assert info.exit_code == 0, info.output
@@ -219,7 +219,7 @@ def test_measurement_gain_vignetting_and_frame_clock_against_the_truth(calibrate
     assert fit["measure_flat"]["mapping"] == "chessboard"
     # The flat field gives the product; the configured light share stays.
     assert cal.parts["measure_fraction"] == 1.0
-    rig = c.apply_calibration(RigParams(sensor_size=SIZE), cal)
+    rig = c.apply_calibration(RigParams(sensor_size=SIZE, lcos_cells=truth.lcos_cells), cal)
     assert rig.measure_gain == cal.parts["measure_gain"] and rig.measure_fraction == 1.0
     assert rig.trigger_jitter_s == cal.parts["trigger_jitter_s"]
     assert rig.drop_rate == cal.parts["drop_rate"]

@@ -155,22 +155,26 @@ def test_a_calibration_is_the_host_s_knowledge_not_the_emulated_rig_s_physics():
 
 
 def test_a_capture_with_what_calibration_found_is_as_good_as_one_with_the_truth(tmp_path):
-    """The emulated realistic rig at 160x120 (LCoS cells a sixth of a pixel), the chart's
-    sharp edges: calibrated, then captured with what the calibration found while the rig
-    keeps its truth. hdr-static's RMS error stays within 1.6x of a capture whose host
+    """The emulated realistic rig at 160x120 with a 1024x600 LCoS (cells a sixth of a
+    pixel), the chart's sharp edges: calibrated, then captured with what the calibration
+    found while the rig keeps its truth. hdr-static's RMS error stays within 1.6x of a capture whose host
     knows the truth (1.1-1.35x over repeated runs, the capture's timing varying; 2.15-3.3x
     when the host left unclosed the cells that the truth's pixel centres fell in and its
     own did not)."""
     from stages.calibrate import calibration_changes, run_calibration
 
-    size = (160, 120)
-    known = calibration_changes(run_calibration("sim", size=size, profile="realistic"))
+    size, fine = (160, 120), {"lcos_cells": (1024, 600)}
+    known = calibration_changes(
+        run_calibration("sim", overrides=dict(fine), size=size, profile="realistic")
+    )
     from stages.optics import rig_profile
 
-    assert known["homography"] != rig_profile("realistic", size).homography  # (an estimate)
+    assert known["homography"] != rig_profile("realistic", size, **fine).homography
     rms = {}
     for name, host in (("truth", {}), ("calibrated", known)):
-        sim = SimOptions(scene="builtin:chart", size=size, profile="realistic", realtime=False)
+        sim = SimOptions(
+            scene="builtin:chart", size=size, profile="realistic", realtime=False, overrides=fine
+        )
         with open_rig("sim", sim, known=host) as rig:
             cap = capture_frame(rig, tmp_path / name, raw_stream=False)
         err = stops_error(hdr_static(cap).radiance, cap.truth, cap.T, cap.rig.frame_s)

@@ -38,7 +38,12 @@ def rig_options(f: Callable) -> Callable:
     for opt, _field, typ, hlp in reversed(RIG_OPTIONS):
         f = click.option(opt, type=typ, default=None, help=hlp)(f)
     f = click.option(
-        "--lcos", "lcos", type=SIZE, default=None, help="LCoS grid in cells [1024x600]."
+        "--lcos",
+        "lcos",
+        type=SIZE,
+        default=None,
+        help="LCoS grid in cells [1024x600; the realistic profile: the published rig's "
+        "1024x600 on 1280x1024 pixels, scaled to the sensor].",
     )(f)
     return f
 

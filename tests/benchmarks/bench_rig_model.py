@@ -95,12 +95,16 @@ def capture_chain(size: tuple[int, int] = (320, 240)) -> list[dict]:
     rows = []
     print(
         f"{'scene':12s} {'ideal med/rms':>16s} {'calibrated':>16s} {'ideal assumed':>16s}"
-        f" {'ratio':>6s} {'ratio ign':>9s} {'ratio uniform':>13s}"
+        f" {'ratio':>6s} {'ratio ign':>9s} {'ratio uniform':>13s} {'ratio truth':>11s}"
     )
     with tempfile.TemporaryDirectory() as tmp:
         for src in _scenes():
             out = {"scene": Path(src).stem}
-            for name, profile, known in (("ideal", "ideal", {}), ("real", "realistic", changes)):
+            for name, profile, known in (
+                ("ideal", "ideal", {}),
+                ("real", "realistic", changes),
+                ("real-truth", "realistic", {}),
+            ):
                 # The emulated rig keeps its truth; the host knows what calibration found.
                 opts = SimOptions(scene=src, size=size, profile=profile)
                 with open_rig("sim", opts, known=known) as rig:
@@ -122,7 +126,8 @@ def capture_chain(size: tuple[int, int] = (320, 240)) -> list[dict]:
                 f" {out['real-ignored'][0]:7.4f}/{out['real-ignored'][1]:.4f}"
                 f" {out['real'][1] / out['ideal'][1]:6.2f}"
                 f" {out['real-ignored'][1] / out['ideal'][1]:9.2f}"
-                f" {out['real-uniform'][1] / out['ideal'][1]:13.2f}",
+                f" {out['real-uniform'][1] / out['ideal'][1]:13.2f}"
+                f" {out['real-truth'][1] / out['ideal'][1]:11.2f}",
                 flush=True,
             )
             rows.append(out)
