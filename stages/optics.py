@@ -112,7 +112,40 @@ def rig_profile(spec: str, sensor_size: tuple[int, int], **overrides: Any) -> Ri
     if "sensor_size" in params and base == "realistic":
         parts = realistic_parts(tuple(params["sensor_size"]))
     merged = {"sensor_size": tuple(sensor_size), **parts, **params, **overrides}
+    if base == "realistic" and "homography" not in params and "homography" not in overrides:
+        merged["homography"] = relay_homography(
+            tuple(merged["lcos_cells"]), tuple(merged["sensor_size"])
+        )
     return RigParams.from_dict(merged)
+
+
+#: Where the realistic profile's relay optics put the LCoS image against the ideal
+#: alignment: a shift (VET px) and a rotation (degrees) about the sensor's centre.
+RELAY_SHIFT_PX = (0.31, -0.17)
+RELAY_ROTATION_DEG = 0.02
+
+
+def relay_homography(lcos_cells: tuple[int, int], sensor_size: tuple[int, int]) -> list:
+    """The realistic profile's cell -> VET pixel homography: the whole LCoS on the whole
+    sensor (:func:`stages.rig.default_homography`), then shifted by
+    :data:`RELAY_SHIFT_PX` and turned by :data:`RELAY_ROTATION_DEG` about the sensor's
+    centre. Relay optics never align cell edges with pixel centres: with the ideal
+    alignment the edges fall on pixel centres at a few fixed phases, which biases any
+    fit of quantised Gray-code cells by a tenth of a cell."""
+    from .rig import default_homography
+
+    w, h = sensor_size
+    a = math.radians(RELAY_ROTATION_DEG)
+    c, s = math.cos(a), math.sin(a)
+    cx, cy = w / 2.0, h / 2.0
+    turn = np.array(
+        [
+            [c, -s, cx - c * cx + s * cy + RELAY_SHIFT_PX[0]],
+            [s, c, cy - s * cx - c * cy + RELAY_SHIFT_PX[1]],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    return (turn @ np.asarray(default_homography(lcos_cells, sensor_size), float)).tolist()
 
 
 def _profile_file(path: str) -> tuple[dict[str, Any], str]:
