@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .physics import CellMap
+from .physics import CellMap, cells_at
 from .rig import REAL_RIG_PARTS, RigParams
 
 #: Named rig profiles of ``--rig-profile``.
@@ -272,8 +272,9 @@ def _apply(m, img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out.reshape(shape + img.shape[2:])
 
 
-#: How far (VET px) from a pixel centre the host still thresholds an LCoS cell: a
-#: calibrated homography's error (``vet calibrate``: hundredths of a pixel) with a margin.
+#: How far (VET px) from a pixel centre the host still thresholds an LCoS cell that no
+#: pixel centre lands in (only cells narrower than a pixel can be such): the error of a
+#: homography calibrated on such cells (hundredths of a pixel) with a margin.
 HOST_CELL_MARGIN_PX = 0.05
 
 
@@ -349,7 +350,7 @@ class MeasureGeometry:
         (``starts`` of length ``Hm Wm + 1``, ``cells``): the pixel that images the cell's
         centre governs it too. Listed are the cells within :data:`HOST_CELL_MARGIN_PX` of
         a VET pixel centre of ``cellmap_vet``'s grid (sampled at that spacing), not only
-        those a centre lands in through the host's homography: a homography known to a
+        those a centre lands in through the host's homography: a homography off by a
         hundredth of a pixel puts some pixel centres in a neighbouring cell, which must
         close with its pixel too.
         """
@@ -359,21 +360,13 @@ class MeasureGeometry:
         h, w = cellmap_vet.pixel_cell.shape[:2]
         yy, xx = np.mgrid[0:h, 0:w] + 0.5
         d = HOST_CELL_MARGIN_PX
-        near = np.unique(
-            np.concatenate(
-                [
-                    CellMap(
-                        hom, rig.lcos_cells, (h, w), points=(xx + dx, yy + dy)
-                    ).pixel_cell.ravel()
-                    for dx in (-d, 0.0, d)
-                    for dy in (-d, 0.0, d)
-                ]
-            )
-        )
-        near = near[near < cm.n_cells]
+        near = np.zeros(cm.n_cells + 1, bool)  # (the last: outside the LCoS)
+        for dx in (-d, 0.0, d):
+            for dy in (-d, 0.0, d):
+                near[cells_at(hom, rig.lcos_cells, xx + dx, yy + dy).ravel()] = True
         owned = np.zeros(cm.n_cells + 1, bool)
         owned[cm.pixel_cell.ravel()] = True
-        orphans = near[~owned[near]]
+        orphans = np.flatnonzero(near[:-1] & ~owned[:-1])
         cw = rig.lcos_cells[0]
         centres = np.stack([orphans % cw + 0.5, orphans // cw + 0.5, np.ones(orphans.size)])
         hv = hom @ centres

@@ -160,6 +160,22 @@ def brightest_channel(frame: np.ndarray) -> np.ndarray:
     return out
 
 
+def cells_at(
+    homography: np.ndarray, lcos_cells: tuple[int, int], x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    """Row-major index of the LCoS cell whose area contains each sensor point ``(x, y)``
+    (pixel coordinates, any equal shapes) through the cell -> pixel ``homography``:
+    int64 of ``x``'s shape, ``cells_w * cells_h`` (never closed) outside the LCoS."""
+    cw, ch = lcos_cells
+    hinv = np.linalg.inv(np.asarray(homography, dtype=np.float64))
+    x = np.asarray(x, np.float64)
+    cell = hinv @ np.stack([x.ravel(), np.asarray(y, np.float64).ravel(), np.ones(x.size)])
+    cx = np.floor(cell[0] / cell[2]).astype(np.int64)
+    cy = np.floor(cell[1] / cell[2]).astype(np.int64)
+    inside = (cx >= 0) & (cx < cw) & (cy >= 0) & (cy < ch)
+    return np.where(inside, cy * cw + cx, cw * ch).reshape(x.shape)
+
+
 class CellMap:
     """Which LCoS cell governs each sensor pixel, through the calibration homography.
 
@@ -182,17 +198,10 @@ class CellMap:
         self.shape = shape
         self.lcos_cells = (cw, ch)
         self.n_cells = cw * ch
-        hinv = np.linalg.inv(np.asarray(homography, dtype=np.float64))
         if points is None:
             yy, xx = np.mgrid[0:h, 0:w]
-            pts = np.stack([xx.ravel() + 0.5, yy.ravel() + 0.5, np.ones(h * w)])
-        else:
-            pts = np.stack([points[0].ravel(), points[1].ravel(), np.ones(h * w)])
-        cell = hinv @ pts
-        cx = np.floor(cell[0] / cell[2]).astype(np.int64)
-        cy = np.floor(cell[1] / cell[2]).astype(np.int64)
-        inside = (cx >= 0) & (cx < cw) & (cy >= 0) & (cy < ch)
-        idx = np.where(inside, cy * cw + cx, self.n_cells)
+            points = (xx + 0.5, yy + 0.5)
+        idx = cells_at(homography, (cw, ch), points[0], points[1])
         self.pixel_cell = idx.reshape(h, w).astype(np.int32)
         flat = self.pixel_cell.ravel()
         self._order = np.argsort(flat, kind="stable").astype(np.int64)
