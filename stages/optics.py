@@ -49,10 +49,10 @@ def realistic_parts(sensor_size: tuple[int, int]) -> dict[str, Any]:
     from cell to cell about its mean, milliseconds of switching, a trigger offset of a
     fraction of a millisecond with jitter, rare dropped frames; and the LCoS grid in the
     published rig's proportion to the sensor (1024 x 600 cells on 1280 x 1024 pixels: a
-    cell 1.25 x 1.7 pixels at any size, so that a working size is that rig scaled down,
-    not one whose cells are finer than its pixels, which no Gray code can calibrate to a
-    fraction of a cell). RigParams fields, as a dict (pixel quantities in the given
-    sensor's pixels).
+    cell 1.25 x 1.7 pixels at any size: a working size is that rig scaled down, not one
+    whose cells are finer than its pixels). RigParams fields, as a dict (pixel quantities
+    in the given sensor's pixels); the profile's LCoS homography is
+    :func:`relay_homography` of the grid in force.
     """
     w, h = sensor_size
     cx, cy = w / 2.0, h / 2.0
@@ -129,9 +129,8 @@ def relay_homography(lcos_cells: tuple[int, int], sensor_size: tuple[int, int]) 
     """The realistic profile's cell -> VET pixel homography: the whole LCoS on the whole
     sensor (:func:`stages.rig.default_homography`), then shifted by
     :data:`RELAY_SHIFT_PX` and turned by :data:`RELAY_ROTATION_DEG` about the sensor's
-    centre. Relay optics never align cell edges with pixel centres: with the ideal
-    alignment the edges fall on pixel centres at a few fixed phases, which biases any
-    fit of quantised Gray-code cells by a tenth of a cell."""
+    centre (relay optics never align cell edges exactly on pixel centres, as the ideal
+    alignment does). Returns a 3x3 list."""
     from .rig import default_homography
 
     w, h = sensor_size

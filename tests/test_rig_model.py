@@ -64,10 +64,33 @@ def test_realistic_profile_has_the_published_rigs_parts():
     centre = h @ [640, 512, 1]
     np.testing.assert_allclose(centre[:2], [642.4, 510.3], atol=1e-9)
     assert not rig.ideal_geometry and not rig.ideal_shutter
+    # The published LCoS, its image a third of a pixel off the ideal alignment.
+    assert rig.lcos_cells == (1024, 600)
+    corner = np.asarray(rig.homography) @ [0, 0, 1]
+    turn = np.radians(0.02)
+    x0 = 640 - 640 * np.cos(turn) + 512 * np.sin(turn) + 0.31
+    y0 = 512 - 640 * np.sin(turn) - 512 * np.cos(turn) - 0.17
+    np.testing.assert_allclose(corner[:2] / corner[2], [x0, y0], atol=1e-9)
     # It survives the metadata round trip (declared in the schema).
     from stages.formats.schema import Rig
 
     assert RigParams.from_dict(Rig(**rig.to_dict()).model_dump()) == rig
+
+
+def test_realistic_profile_keeps_the_published_rigs_cell_size_at_any_frame():
+    """1024 x 600 cells on 1280 x 1024 pixels: at a working size the LCoS scales with the
+    sensor (a cell stays 1.25 x 1.7 pixels), and the LCoS image covers the sensor for a
+    grid given with --lcos too (the homography follows the grid)."""
+    for size, cells in (((320, 240), (256, 141)), ((640, 512), (512, 300))):
+        assert rig_profile("realistic", size).lcos_cells == cells
+    assert rig_profile("ideal", (320, 240)).lcos_cells == (1024, 600)
+    for cells in ((256, 141), (1024, 600)):
+        rig = rig_profile("realistic", (320, 240), lcos_cells=cells)
+        cm = CellMap.for_rig(rig, (240, 320))
+        assert np.all(cm.pixel_cell < cm.n_cells)  # every pixel under a cell
+        far = np.asarray(rig.homography) @ [cells[0], cells[1], 1]
+        assert far[0] / far[2] == pytest.approx(320, abs=0.5)
+        assert far[1] / far[2] == pytest.approx(240, abs=0.5)
 
 
 def test_rig_profile_file_sets_each_part(tmp_path):
