@@ -246,6 +246,12 @@ def test_calibration_feeds_capture_and_size_mismatch_is_refused(tmp_path):
     res = run_vet("capture", "--rig", "sim", "--calibration", cal, "-o", tmp_path / "e")
     assert res.returncode == 0, res.stderr
     assert read_capture(tmp_path / "e").shape == (80, 96)
+    # The calibration records the emulated rig's truth, parts included, which a capture's
+    # emulated rig is rebuilt from.
+    from stages.calibrate import emulated_rig_truth
+
+    truth = emulated_rig_truth(found)
+    assert {"homography", "leakage", "switch_s", "relay_blur_px", "measure_k1"} <= set(truth)
     # A damaged record of the emulated truth: one line, exit 1.
     found.provenance["emulated_truth"] = {"leakage": "high"}
     write_calibration(tmp_path / "bad.npz", found)
