@@ -82,6 +82,7 @@ def capture_frame(
     fmt: str = "exr",
     progress: Callable[[int, int], None] | None = None,
     provenance: list[dict[str, Any]] | None = None,
+    cell_leakage: np.ndarray | None = None,
 ) -> Capture:
     """Capture one VET frame with ``rig`` into the capture folder ``folder``.
 
@@ -98,6 +99,9 @@ def capture_frame(
         Keep every measuring subframe in ``measure_raw.npy``.
     fmt : {"exr", "npz"}
         Format of the capture file.
+    cell_leakage : ndarray of shape (H, W), optional
+        The calibration's per-cell leakage (``Calibration.cell_leakage``), stored with
+        the capture for its reconstructions (NaN, outside the LCoS, as the rig's leakage).
 
     Returns
     -------
@@ -309,6 +313,9 @@ def capture_frame(
             else np.stack([edges[:-1] * tau, edges[1:] * tau], axis=1) + off,
             truth=rig.truth,
             truth_motion=rig.truth_motion,
+            cell_leakage=None
+            if cell_leakage is None
+            else np.nan_to_num(cell_leakage, nan=params.leakage).astype(np.float32),
         )
         write_capture(folder / f"capture.{fmt}", cap)
         clog.info("wrote %s", folder / f"capture.{fmt}")

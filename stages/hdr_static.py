@@ -48,11 +48,10 @@ def effective_exposure(cap: Capture) -> np.ndarray:
     if leaks and cap.ideal_T is not None:  # a tile of a frame: its equivalent T
         t = cap.ideal_T.astype(np.float32)
         return (t + np.float32(cap.rig.leakage) * (np.float32(w) - t))[..., None]
-    if leaks and not cap.rig.ideal_shutter and cap.transmittance is None:
-        from .optics import pixel_leakage, vet_exposure
-        from .physics import CellMap
+    if leaks and cap.models_lcos and cap.transmittance is None:
+        from .optics import capture_leakage, vet_exposure
 
-        eps_px = pixel_leakage(cap.rig, CellMap.for_rig(cap.rig, cap.shape)).astype(np.float64)
+        eps_px = capture_leakage(cap.rig, cap.shape, cap.cell_leakage)
         return vet_exposure(cap.T, eps_px, w, cap.rig)[..., None]
     eps = cap.rig.leakage if leaks else 0.0
     t = cap.T.astype(np.float32)
@@ -145,7 +144,7 @@ def hdr_static(
                 "the measuring images are not on the VET sensor's grid: the rig cannot be "
                 "assumed ideal"
             )
-        cap = replace(cap, rig=ideal_rig(cap.rig))
+        cap = replace(cap, rig=ideal_rig(cap.rig), cell_leakage=None)
     raw = cap
     if registered is None or assume_ideal_rig:
         registered = register_measure(cap)  # onto the VET grid (a real rig's camera)

@@ -408,6 +408,17 @@ def pixel_leakage(rig: RigParams, cellmap: CellMap) -> np.ndarray:
     return cellmap.to_pixels(per_cell)
 
 
+def capture_leakage(
+    rig: RigParams, shape: tuple[int, int], cell_leakage: np.ndarray | None = None
+) -> np.ndarray:
+    """Leakage of the cell each VET pixel of a capture sees, (H, W) float64: the
+    calibrated layer it carries (``Capture.cell_leakage``) where it has one, else the
+    rig's configured per-cell pattern (:func:`pixel_leakage`)."""
+    if cell_leakage is not None:
+        return np.asarray(cell_leakage, np.float64)
+    return pixel_leakage(rig, CellMap.for_rig(rig, shape)).astype(np.float64)
+
+
 def relay_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
     """The relay optics' Gaussian blur of a VET-grid (H, W) image (mirrored edges);
     the image itself (float32) when ``sigma_px`` is 0."""

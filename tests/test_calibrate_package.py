@@ -20,6 +20,7 @@ LAYERS = (
     "calfile",
     "frames",
     "acquire",
+    "cell_leakage",
     "parts",
     "recorded_parts",
     "recorded",

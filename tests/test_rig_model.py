@@ -496,3 +496,50 @@ def test_a_measurement_camera_of_its_own_size_renders_and_is_kept_in_a_file(tmp_
     back = read_capture(tmp_path / "c.npz")
     np.testing.assert_array_equal(back.measure, cap.measure)
     np.testing.assert_array_equal(hdr_static(back).radiance, img.radiance)
+
+
+def test_a_capture_s_calibrated_cell_leakage_is_the_exposure_s(small_scene, tmp_path):
+    """A realistic capture (96x80, seed 3) given the leakage of each pixel's cell as a
+    layer: hdr-static's exposure is the one of the rig's configured pattern to float
+    rounding, one leakage everywhere is that of a rig with no pattern, and deblur's ideal
+    T follows it too; the layer survives EXR and npz, a value of 1 or more is refused in
+    one sentence, and the ideal rig assumed ignores it."""
+    import dataclasses
+
+    from stages.deblur.problem import effective_T
+    from stages.formats import read_capture, write_capture
+    from stages.hdr_static import effective_exposure, hdr_static
+    from stages.optics import pixel_leakage
+
+    cap = simulate(small_scene, STILL, rig_profile("realistic", (96, 80)), seed=3)["vet"]
+    pattern = pixel_leakage(cap.rig, CellMap.for_rig(cap.rig, cap.shape))
+    layered = dataclasses.replace(cap, cell_leakage=pattern)
+    np.testing.assert_allclose(effective_exposure(layered), effective_exposure(cap), rtol=1e-6)
+    one = np.full(cap.shape, cap.rig.leakage, np.float32)
+    flat = dataclasses.replace(cap, rig=cap.rig.replace(leakage_spread=0.0))
+    np.testing.assert_allclose(
+        effective_exposure(dataclasses.replace(cap, cell_leakage=one)),
+        effective_exposure(flat),
+        rtol=1e-6,
+    )
+    tf = cap.rig.frame_s
+    assert not np.allclose(
+        effective_T(dataclasses.replace(cap, cell_leakage=one), tf),
+        effective_T(cap, tf),
+        rtol=0,
+        atol=1e-7,
+    )
+    np.testing.assert_allclose(effective_T(layered, tf), effective_T(cap, tf), atol=1e-7)
+    for ext in ("exr", "npz"):
+        write_capture(tmp_path / f"c.{ext}", layered)
+        back = read_capture(tmp_path / f"c.{ext}")
+        np.testing.assert_array_equal(back.cell_leakage, pattern)
+    from stages.formats.layered import write_layered
+
+    data = layered.to_layered()
+    data.layers["cell_leakage"] = np.full_like(data.layers["cell_leakage"], 1.0)
+    write_layered(tmp_path / "bad.npz", data)
+    with pytest.raises(FormatError, match="cell_leakage must hold transmittances in"):
+        read_capture(tmp_path / "bad.npz")
+    ideal = hdr_static(dataclasses.replace(cap, cell_leakage=one), assume_ideal_rig=True)
+    np.testing.assert_array_equal(ideal.radiance, hdr_static(cap, assume_ideal_rig=True).radiance)

@@ -152,6 +152,7 @@ def cli(
                 raw_stream=raw_stream,
                 fmt=fmt,
                 progress=progress,
+                cell_leakage=None if cal is None else cal.cell_leakage,
             )
     if force:
         _remove_stale(output, fmt, raw_stream)

@@ -44,6 +44,9 @@ class Calibration:
         the LCoS footprint).
     gain_ratio : ndarray of shape (H, W) or None
         Measurement-camera over VET-camera signal rate per pixel.
+    cell_leakage : ndarray of shape (H, W) or None
+        Leakage of the LCoS cell in which each pixel's centre lies: the per-cell map
+        through the relay blur (:func:`.cell_leakage.leakage_per_cell`), NaN outside the LCoS.
     summary : dict
         Scalars: ``leakage_median``, ``dark_current_median_e_s``, ``bias_median_dn``,
         ``gain_ratio_median``.
@@ -69,12 +72,21 @@ class Calibration:
     dark_current_e_s: np.ndarray | None = None
     leakage: np.ndarray | None = None
     gain_ratio: np.ndarray | None = None
+    cell_leakage: np.ndarray | None = None
     summary: dict[str, float] = field(default_factory=dict)
     rig: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
     parts: dict[str, Any] = field(default_factory=dict)
 
-    _LAYERS = ("cell_x", "cell_y", "bias_dn", "dark_current_e_s", "leakage", "gain_ratio")
+    _LAYERS = (
+        "cell_x",
+        "cell_y",
+        "bias_dn",
+        "dark_current_e_s",
+        "leakage",
+        "gain_ratio",
+        "cell_leakage",
+    )
     _LAYER_NAMES = {
         "cell_x": "cell_x",
         "cell_y": "cell_y",
@@ -82,6 +94,7 @@ class Calibration:
         "dark_current_e_s": "dark_current",
         "leakage": "leakage",
         "gain_ratio": "gain_ratio",
+        "cell_leakage": "cell_leakage",
     }
 
     def to_layered(self):
@@ -104,6 +117,7 @@ class Calibration:
                 "dark_current": "e-/s",
                 "leakage": "transmittance",
                 "gain_ratio": "measurement/VET",
+                "cell_leakage": "transmittance",
             },
             **self.summary,
         }
@@ -149,6 +163,13 @@ class Calibration:
             arr = data.layers.get(cls._LAYER_NAMES[attr])
             if arr is not None:
                 setattr(cal, attr, arr[:, :, 0])
+        leak = cal.cell_leakage
+        if leak is not None:
+            if leak.shape != (cal.sensor_size[1], cal.sensor_size[0]):
+                raise FormatError(f"{what}: its cell_leakage layer is not the sensor's size")
+            seen = leak[~np.isnan(leak)]
+            if not (np.isfinite(seen).all() and (seen >= 0).all() and (seen < 1).all()):
+                raise FormatError(f"{what}: its cell_leakage layer holds values outside [0, 1)")
         return cal
 
 

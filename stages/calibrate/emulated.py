@@ -134,7 +134,7 @@ def calibrate_sim(
     ``errors_vs_truth`` (:func:`compare_to_truth`). A rig ``profile`` with the parts of
     a real rig (:func:`stages.optics.rig_profile`) has them found too, on frames the
     emulated rig's physics records (:func:`.parts.calibrate_parts`): ``parts`` and
-    their errors against the truth.
+    their errors against the truth, and the per-cell leakage (``cell_leakage``).
 
     Returns
     -------
@@ -163,6 +163,14 @@ def calibrate_sim(
         cal.parts, errors = calibrate_parts(p, seed)
         _measure_parts(cal, frames, p, seed)
         cal.provenance["errors_vs_truth"].update(errors)
+    if p.relay_blur_px > 0 or p.leakage_spread > 0:
+        from .calfile import apply_calibration
+        from .cell_leakage import LEAKAGE_FRAMES, calibrate_cell_leakage
+
+        known = apply_calibration(p, cal)
+        cal.cell_leakage, errors = calibrate_cell_leakage(p, known, LEAKAGE_FRAMES, seed)
+        cal.provenance["errors_vs_truth"].update(errors)
+        cal.provenance.setdefault("parts_fit", {})["cell_leakage"] = {"flat_frames": LEAKAGE_FRAMES}
     return cal
 
 

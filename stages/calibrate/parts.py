@@ -11,9 +11,7 @@
   (:func:`stages.optics.open_integral`) rises until the cell is applied closed at
   ``t = c tau + offset`` and bends over the switching time; :func:`fit_switching` finds
   ``t`` and ``switch_s`` from the measured ``E(W)``.
-- **Leakage map**: all-closed over all-open on a flat field, per VET pixel, is the
-  relay-blurred per-cell leakage (:func:`leakage_per_pixel`); what each pixel sees is
-  what hdr-static's exposure needs.
+- **Leakage map**: :mod:`.cell_leakage`.
 
 The ``emulated_*`` functions record the same frames on the emulated rig's physics (its
 truth in ``RigParams``), for the tests and ``python -m stages.calibrate --selftest``.
@@ -324,75 +322,6 @@ def fit_edge_blur(diff: np.ndarray, axis: int = 1, step: int = 4, half: int = 8)
     return float(np.median(sigmas)) if sigmas else None
 
 
-# --- the leakage map ------------------------------------------------------------------
-
-
-def leakage_per_pixel(closed_dn: np.ndarray, open_dn: np.ndarray) -> np.ndarray:
-    """Per-pixel leakage from flat-field frames, all cells closed and all open, of the
-    same exposure (DN, dark frame subtracted, (H, W[, C])): their ratio, (H, W) float32
-    (the brightest channel's)."""
-    c = np.asarray(closed_dn, np.float64)
-    o = np.asarray(open_dn, np.float64)
-    if c.ndim == 3:
-        k = int(np.argmax(o.reshape(-1, o.shape[2]).mean(axis=0)))
-        c, o = c[..., k], o[..., k]
-    return (c / np.maximum(o, 1e-12)).astype(np.float32)
-
-
-def emulated_leakage_frames(
-    rig: RigParams, frames: int = 16, seed: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Flat-field frames of the emulated VET camera, every cell closed (0.8 of the full
-    well through the brightest leakage) and every cell open at an exposure 1/250 of it
-    (gain-corrected so both are in the same exposure's DN), each the mean of ``frames``."""
-    h, w = rig.sensor_size[1], rig.sensor_size[0]
-    cm = CellMap.for_rig(rig, (h, w))
-    eps = relay_blur(pixel_leakage(rig, cm), rig.relay_blur_px)
-    rng = np.random.default_rng(seed)
-    rate = 0.8 * rig.full_well_e / float(eps.max())
-    closed = np.mean([expose((eps * rate)[..., None], rig, rng) for _ in range(frames)], axis=0)
-    short = 1.0 / 250.0
-    opened = np.mean(
-        [expose(np.full((h, w, 1), rate * short, np.float32), rig, rng) for _ in range(frames)],
-        axis=0,
-    )
-    return closed[..., 0], opened[..., 0] / short
-
-
-def leakage_per_cell(
-    ratio: np.ndarray, rig: RigParams, iters: int = 300
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-cell leakage from a per-pixel map (:func:`leakage_per_pixel`) through the
-    relay blur: the cells' values ``e`` minimising ``|blur(P e) - ratio|^2`` (``P``:
-    each VET pixel's cell, :class:`~stages.physics.CellMap`) with a weak pull to the mean,
-    by conjugate gradients. Returns the row-major cell indices that some pixel sees and
-    their leakage (cells no pixel sees are not observable)."""
-    from ..measure_grid import pcg
-
-    h, w = ratio.shape
-    cm = CellMap.for_rig(rig, (h, w))
-    cells, inv = np.unique(cm.pixel_cell.ravel(), return_inverse=True)
-    keep = cells < cm.n_cells
-    n = cells.size
-    counts = np.bincount(inv, minlength=n).astype(np.float64)
-    sigma = rig.relay_blur_px
-    y = np.asarray(ratio, np.float64)
-    mean = float(np.median(y))
-    lam = 1e-3
-
-    def blur(img: np.ndarray) -> np.ndarray:
-        return relay_blur(img.astype(np.float32), sigma).astype(np.float64)
-
-    def normal(e: np.ndarray) -> np.ndarray:
-        img = blur(blur(e[inv].reshape(h, w)))  # the Gaussian is its own adjoint
-        return np.bincount(inv, weights=img.ravel(), minlength=n) + lam * counts * e
-
-    b = np.bincount(inv, weights=blur(y).ravel(), minlength=n) + lam * counts * mean
-    e0 = np.bincount(inv, weights=y.ravel(), minlength=n) / counts
-    e = pcg(normal, b, counts * (1 + lam), e0, iters)
-    return cells[keep], e[keep].astype(np.float32)
-
-
 def calibrate_parts(rig: RigParams, seed: int = 0) -> tuple[dict, dict]:
     """The parts of the emulated ``rig`` found from the frames its physics records: the
     measurement -> VET mapping (chessboard), the trigger offset and switching time
@@ -425,9 +354,11 @@ def calibrate_parts(rig: RigParams, seed: int = 0) -> tuple[dict, dict]:
 def selftest(size: tuple[int, int] = (320, 240), seed: int = 0) -> dict:
     """Each part calibrated on the emulated realistic rig against its truth: the mapping's
     RMS error over the frame (VET px), the trigger offset and switching time (s, found
-    and true), the per-pixel leakage's largest relative error and, on an LCoS of cells
-    4 px wide, the per-cell one."""
-    from ..optics import leakage_map, rig_profile
+    and true), the per-pixel leakage's largest relative error and the per-cell one's
+    median, 99th percentile and largest (:func:`.cell_leakage.calibrate_cell_leakage`, the truth's
+    geometry)."""
+    from ..optics import rig_profile
+    from .cell_leakage import calibrate_cell_leakage, emulated_leakage_frames, leakage_from_halves
 
     rig = rig_profile("realistic", size)
     pairs = emulated_corner_pairs(rig, seed)
@@ -444,21 +375,18 @@ def selftest(size: tuple[int, int] = (320, 240), seed: int = 0) -> dict:
     wins = t_true + np.linspace(-2e-3, 5e-3, 15)
     e = emulated_switching_series(rig, c, wins, 0.5 * rig.full_well_e / wins.max(), seed)
     t_fit, s_fit = fit_switching(wins, e, rig.leakage, c * rig.subframe_s)
-    closed, opened = emulated_leakage_frames(rig, seed=seed)
+    ratio, _ = leakage_from_halves(*emulated_leakage_frames(rig, seed=seed))
     cm = CellMap.for_rig(rig, (size[1], size[0]))
     true_px = relay_blur(pixel_leakage(rig, cm), rig.relay_blur_px)
-    px_err = float(np.abs(leakage_per_pixel(closed, opened) / true_px - 1).max())
-    coarse = rig.replace(lcos_cells=(size[0] // 4, size[1] // 4), homography=[])
-    closed, opened = emulated_leakage_frames(coarse, seed=seed)
-    cells, leak = leakage_per_cell(leakage_per_pixel(closed, opened), coarse)
-    cell_err = float(np.abs(leak / leakage_map(coarse).ravel()[cells] - 1).max())
+    px_err = float(np.abs(ratio / true_px - 1).max())
+    _, cell_errors = calibrate_cell_leakage(rig, rig, seed=seed)
     return {
         "mapping_rms_px": mapping_error_px(est, rig),
         "k1": (fit["measure_k1"], rig.measure_k1),
         "trigger_offset_s": (t_fit - c * rig.subframe_s, rig.trigger_offset_s),
         "switch_s": (s_fit, rig.switch_s),
         "leakage_per_pixel_max_rel_err": px_err,
-        "leakage_per_cell_max_rel_err_4px_cells": cell_err,
+        **cell_errors,
     }
 
 

@@ -309,7 +309,7 @@ def deblur(
     recorded = cap
     cap = register_measure(cap)
     static = hdr_static(recorded, registered=cap)
-    if not cap.rig.ideal_shutter:  # on the whole frame, for tiles cropped from it too
+    if cap.models_lcos:  # on the whole frame, for tiles cropped from it too
         from .problem import effective_T as _effective_T
 
         cap = replace(

@@ -298,14 +298,13 @@ def effective_T(cap: Capture, tf: float) -> np.ndarray:
     :func:`stages.optics.vet_exposure`) the T of the ideal shutter (mean leakage) that
     exposes a still pixel alike."""
     rig = cap.rig
-    if rig.ideal_shutter:
+    if not cap.models_lcos:
         return cap.T
     if cap.ideal_T is not None:
         return cap.ideal_T
-    from ..optics import pixel_leakage, vet_exposure
-    from ..physics import CellMap
+    from ..optics import capture_leakage, vet_exposure
 
-    eps_px = pixel_leakage(rig, CellMap.for_rig(rig, cap.shape)).astype(np.float64)
+    eps_px = capture_leakage(rig, cap.shape, cap.cell_leakage)
     e = vet_exposure(cap.T, eps_px, tf, rig).astype(np.float64)
     t = (e - rig.leakage * tf) / (1.0 - rig.leakage)
     return np.clip(t, 0.0, tf).astype(np.float32)

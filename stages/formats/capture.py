@@ -88,6 +88,10 @@ class Capture:
     truth: np.ndarray | None = None  # (H, W, C) scene units
     truth_motion: np.ndarray | None = None  # (H, W, 2) px/s
     truth_layers: np.ndarray | None = None  # (H, W) layer index (motions along paths)
+    # (H, W) transmittance: the leakage of the LCoS cell each pixel's centre lies in, as a
+    # calibration measured it (Calibration.cell_leakage); read in place of the rig's
+    # configured per-cell pattern (stages.optics.capture_leakage).
+    cell_leakage: np.ndarray | None = None
     # Set by stages.optics.register_measure (never stored): the measuring images lie on
     # the VET grid, and these (2, H, W) factors scale the ideal rig's shot and read
     # variances of each of their pixels.
@@ -104,6 +108,13 @@ class Capture:
     @property
     def shape(self) -> tuple[int, int]:
         return self.I.shape[:2]
+
+    @property
+    def models_lcos(self) -> bool:
+        """Whether its exposure goes through a real LCoS (:func:`stages.optics.vet_exposure`):
+        the rig's shutter is not the ideal one, or the capture has a calibrated per-cell
+        leakage."""
+        return not self.rig.ideal_shutter or self.cell_leakage is not None
 
     @property
     def keeps_stream(self) -> bool:
@@ -223,6 +234,12 @@ class Capture:
                 raise FormatError(f"{what}: truth_layers names a layer truth_trajectory lacks")
         if self.transmittance is not None and self.transmittance.shape != self.T.shape:
             raise FormatError(f"{what}: transmittance does not match T's size")
+        if self.cell_leakage is not None:
+            if self.cell_leakage.shape != self.T.shape:
+                raise FormatError(f"{what}: cell_leakage does not match T's size")
+            leak = self.cell_leakage
+            if not (np.isfinite(leak).all() and (leak >= 0).all() and (leak < 1).all()):
+                raise FormatError(f"{what}: cell_leakage must hold transmittances in [0, 1)")
 
     # --- conversion to/from the layered container ---------------------------------
     def to_layered(self) -> Layered:
@@ -240,6 +257,8 @@ class Capture:
             data.add("truth_motion", self.truth_motion, ["u", "v"])
         if self.truth_layers is not None:
             data.add("truth_layers", self.truth_layers, ["Y"])
+        if self.cell_leakage is not None:
+            data.add("cell_leakage", self.cell_leakage, ["Y"])
         meta = dict(self.meta)
         meta["kind"] = "capture"
         meta["format_version"] = 1
@@ -250,6 +269,7 @@ class Capture:
             "T": "s",
             "M": "DN",
             "A": "1",
+            "cell_leakage": "transmittance",
             "truth": "scene",
             "truth_motion": "px/s",
         }
@@ -297,6 +317,9 @@ class Capture:
             transmittance=data.layers["A"][:, :, 0] if "A" in data.layers else None,
             truth=data.layers.get("truth"),
             truth_motion=data.layers.get("truth_motion"),
+            cell_leakage=(
+                data.layers["cell_leakage"][:, :, 0] if "cell_leakage" in data.layers else None
+            ),
             truth_layers=(
                 np.rint(data.layers["truth_layers"][:, :, 0]).astype(np.int32)
                 if "truth_layers" in data.layers

@@ -10,8 +10,11 @@ ideal rig's RMS.
 Then the same through the emulated rig behind ``vet capture``: the ideal rig
 uncalibrated; the realistic rig calibrated first (``vet calibrate --rig sim --rig-profile
 realistic``, its parts found) and captured with what that calibration found, the emulated
-rig keeping its own truth; hdr-static with the calibrated parts and with the ideal rig
-assumed. The emulated rig runs in real time: on a busy
+rig keeping its own truth; hdr-static with the calibrated parts (the calibration's
+per-cell leakage map stored with the capture, as ``vet capture --calibration`` does), with
+the ideal rig assumed, with one leakage for every cell, with the rig's configured per-cell
+pattern in place of the map, and on a capture whose host knew the truth. The emulated rig
+runs in real time: on a busy
 machine the host falls behind, closures come late (T records them) and the figures move.
 
 Run: ``.venv/bin/python -m tests.benchmarks.bench_rig_model [WxH] [--simulate|--capture]``
@@ -95,7 +98,8 @@ def capture_chain(size: tuple[int, int] = (320, 240)) -> list[dict]:
     rows = []
     print(
         f"{'scene':12s} {'ideal med/rms':>16s} {'calibrated':>16s} {'ideal assumed':>16s}"
-        f" {'ratio':>6s} {'ratio ign':>9s} {'ratio uniform':>13s} {'ratio truth':>11s}"
+        f" {'ratio':>6s} {'ratio ign':>9s} {'ratio uniform':>13s} {'ratio pattern':>13s}"
+        f" {'ratio truth':>11s}"
     )
     with tempfile.TemporaryDirectory() as tmp:
         for src in _scenes():
@@ -108,14 +112,22 @@ def capture_chain(size: tuple[int, int] = (320, 240)) -> list[dict]:
                 # The emulated rig keeps its truth; the host knows what calibration found.
                 opts = SimOptions(scene=src, size=size, profile=profile)
                 with open_rig("sim", opts, known=known) as rig:
-                    cap = capture_frame(rig, Path(tmp) / f"{out['scene']}-{name}", raw_stream=False)
+                    cap = capture_frame(
+                        rig,
+                        Path(tmp) / f"{out['scene']}-{name}",
+                        raw_stream=False,
+                        cell_leakage=cal.cell_leakage if name == "real" else None,
+                    )
                 variants = {name: (cap, False)}
                 if name == "real":
                     variants["real-ignored"] = (cap, True)
-                    # The per-cell leakage pattern is the rig's configured one (the
-                    # emulated truth's); a rig file that cannot know it assumes none.
-                    flat = dataclasses.replace(cap, rig=cap.rig.replace(leakage_spread=0.0))
+                    # In place of the calibrated per-cell leakage: none (one leakage), and
+                    # the rig's configured pattern (here the emulated truth's).
+                    flat = dataclasses.replace(
+                        cap, rig=cap.rig.replace(leakage_spread=0.0), cell_leakage=None
+                    )
                     variants["real-uniform"] = (flat, False)
+                    variants["real-pattern"] = (dataclasses.replace(cap, cell_leakage=None), False)
                 for key, (c, assume) in variants.items():
                     img = hdr_static(c, assume_ideal_rig=assume)
                     e = stops_error(img.radiance, c.truth, c.T, c.rig.frame_s)["all"]
@@ -127,6 +139,7 @@ def capture_chain(size: tuple[int, int] = (320, 240)) -> list[dict]:
                 f" {out['real'][1] / out['ideal'][1]:6.2f}"
                 f" {out['real-ignored'][1] / out['ideal'][1]:9.2f}"
                 f" {out['real-uniform'][1] / out['ideal'][1]:13.2f}"
+                f" {out['real-pattern'][1] / out['ideal'][1]:13.2f}"
                 f" {out['real-truth'][1] / out['ideal'][1]:11.2f}",
                 flush=True,
             )

@@ -1,0 +1,184 @@
+"""The LCoS's leakage, per VET pixel and per cell, from flat fields a lab records.
+
+All cells closed over all open, per VET pixel, is the relay-blurred per-cell leakage
+(:func:`leakage_per_pixel`). The per-cell map comes through the relay blur's
+deconvolution (:func:`leakage_per_cell`), whose noise amplification the frames averaged
+must beat: a recording split in two halves measures that noise
+(:func:`leakage_from_halves`), and sets the weight of the prior. The ``emulated_*``
+functions record the frames on the emulated rig's physics (its truth in ``RigParams``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..optics import pixel_leakage, relay_blur
+from ..physics import CellMap
+from ..rig import RigParams
+
+#: Flat frames a calibration averages, each all closed and all open, for the per-cell
+#: leakage: the relay blur's deconvolution amplifies the noise, and at the published
+#: rig's cells (1.25 VET pixels) about 4000 frames bring every cell within 10%.
+LEAKAGE_FRAMES = 4096
+
+
+def leakage_per_pixel(closed_dn: np.ndarray, open_dn: np.ndarray) -> np.ndarray:
+    """Per-pixel leakage from flat-field frames, all cells closed and all open, of the
+    same exposure (DN, dark frame subtracted, (H, W[, C])): their ratio, (H, W) float32
+    (the brightest channel's)."""
+    c = np.asarray(closed_dn, np.float64)
+    o = np.asarray(open_dn, np.float64)
+    if c.ndim == 3:
+        k = int(np.argmax(o.reshape(-1, o.shape[2]).mean(axis=0)))
+        c, o = c[..., k], o[..., k]
+    return (c / np.maximum(o, 1e-12)).astype(np.float32)
+
+
+def _mean_exposure(lam_e: np.ndarray, rig: RigParams, rng: np.random.Generator, frames: int):
+    """The mean DN of ``frames`` independent exposures of ``lam_e`` expected electrons,
+    drawn from its distribution in one step: the shot noise as a Poisson draw of the
+    total electrons, the read noise shrunk by ``sqrt(frames)``. Exact where no frame
+    reaches the full well; each frame's rounding to a code (dithered by the noise) is
+    left out."""
+    e = rng.poisson(np.asarray(lam_e, np.float64) * frames) / frames
+    np.minimum(e, rig.full_well_e, out=e)
+    e += rig.read_noise_e / np.sqrt(frames) * rng.standard_normal(e.shape)
+    return e * rig.gain_dn_per_e
+
+
+def emulated_leakage_frames(
+    rig: RigParams, frames: int = 4096, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flat-field frames of the emulated VET camera, every cell closed (0.8 of the full
+    well through the brightest leakage) and every cell open at an exposure 1/250 of it
+    (gain-corrected so both are in the same exposure's DN): ``(closed, opened)``, each
+    (2, H, W) float64, the means of the two halves of ``frames`` frames (a lab splits
+    its recording so to measure the noise, :func:`leakage_from_halves`)."""
+    h, w = rig.sensor_size[1], rig.sensor_size[0]
+    cm = CellMap.for_rig(rig, (h, w))
+    eps = relay_blur(pixel_leakage(rig, cm), rig.relay_blur_px)
+    rng = np.random.default_rng(seed)
+    rate = 0.8 * rig.full_well_e / float(eps.max())
+    short = 1.0 / 250.0
+    half = max(1, frames // 2)
+    closed = np.stack([_mean_exposure(eps * rate, rig, rng, half) for _ in range(2)])
+    flat = np.full((h, w), rate * short)
+    opened = np.stack([_mean_exposure(flat, rig, rng, half) / short for _ in range(2)])
+    return closed, opened
+
+
+def leakage_from_halves(closed: np.ndarray, opened: np.ndarray) -> tuple[np.ndarray, float]:
+    """The per-pixel leakage of two halves of a recording (``closed``, ``opened``: (2, H,
+    W[, C]) mean DN of each half, dark-subtracted) and its noise: ``(ratio, sigma)``,
+    the ratio of all frames' means ((H, W) float32, :func:`leakage_per_pixel`) and its
+    standard error per pixel, half the robust spread (MAD) of the halves' difference."""
+    ratio = leakage_per_pixel(closed.mean(axis=0), opened.mean(axis=0))
+    diff = leakage_per_pixel(closed[0], opened[0]) - leakage_per_pixel(closed[1], opened[1])
+    diff = diff[np.isfinite(diff)]
+    sigma = float(np.median(np.abs(diff - np.median(diff)))) / 0.6745 / 2 if diff.size else 0.0
+    return ratio, sigma
+
+
+def leakage_per_cell(
+    ratio: np.ndarray, rig: RigParams, noise: float, iters: int = 1000
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-cell leakage from a per-pixel map (:func:`leakage_per_pixel`) through the
+    relay blur: the cells' values ``e`` minimising ``|blur(P e) - ratio|^2 / noise^2 +
+    |e - m|^2 / s^2`` (``P``: each VET pixel's cell, :class:`~stages.physics.CellMap`;
+    ``noise``: the ratio's standard error per pixel, :func:`leakage_from_halves`; ``m``
+    and ``s``: the cells' mean and spread, estimated from the map), by conjugate
+    gradients (the MAP estimate under Gaussian noise and prior). Returns the row-major
+    cell indices that some pixel's centre lies in and their leakage (the rest are not
+    observable, and not what a pixel's exposure depends on)."""
+    from ..measure_grid import pcg
+
+    h, w = ratio.shape
+    cm = CellMap.for_rig(rig, (h, w))
+    cells, inv = np.unique(cm.pixel_cell.ravel(), return_inverse=True)
+    keep = cells < cm.n_cells
+    n = cells.size
+    counts = np.bincount(inv, minlength=n).astype(np.float64)
+    sigma = rig.relay_blur_px
+    y = np.asarray(ratio, np.float64)
+    mean = float(np.median(y))
+
+    def blur(img: np.ndarray) -> np.ndarray:
+        return relay_blur(img.astype(np.float32), sigma).astype(np.float64)
+
+    def cell_means(img: np.ndarray) -> np.ndarray:
+        return np.bincount(inv, weights=img.ravel(), minlength=n) / counts
+
+    e0 = cell_means(y)
+    # the cells' spread s: the variance of their plain averages is s^2 times that of a
+    # white unit pattern's through the same blur, plus the noise averaged into them
+    white = np.random.default_rng(0).standard_normal(n)
+    shrink = float(np.var(cell_means(blur(white[inv].reshape(h, w)))[keep]))
+    noise_in = float(np.mean(noise**2 / counts[keep]))
+    spread2 = max((float(np.var(e0[keep])) - noise_in) / max(shrink, 1e-12), 1e-24)
+    prior = max(noise, 1e-12) ** 2 / spread2
+
+    def normal(e: np.ndarray) -> np.ndarray:
+        img = blur(blur(e[inv].reshape(h, w)))  # the Gaussian is its own adjoint
+        return np.bincount(inv, weights=img.ravel(), minlength=n) + prior * e
+
+    b = np.bincount(inv, weights=blur(y).ravel(), minlength=n) + prior * mean
+    e = pcg(normal, b, counts + prior, e0, iters)
+    return cells[keep], e[keep].astype(np.float32)
+
+
+def cell_leakage_layer(cells: np.ndarray, leak: np.ndarray, rig: RigParams) -> np.ndarray:
+    """The per-cell leakage (:func:`leakage_per_cell`) as a VET-pixel layer: each pixel
+    the leakage of the cell its centre lies in (within [0, 0.999]), (H, W) float32, NaN
+    outside the LCoS (``Calibration.cell_leakage``)."""
+    h, w = rig.sensor_size[1], rig.sensor_size[0]
+    cm = CellMap.for_rig(rig, (h, w))
+    per_cell = np.full(cm.n_cells + 1, np.nan, np.float32)
+    per_cell[cells] = np.clip(leak, 0.0, 0.999)
+    return per_cell[cm.pixel_cell]
+
+
+def calibrate_cell_leakage(
+    truth: RigParams, known: RigParams, frames: int = LEAKAGE_FRAMES, seed: int = 0
+) -> tuple[np.ndarray, dict]:
+    """The per-cell leakage of the emulated rig ``truth`` from ``frames`` flat frames
+    each all closed and all open (:func:`emulated_leakage_frames`), solved through the
+    geometry the calibration found (``known``: its homography and relay blur). Returns
+    the layer (:func:`cell_leakage_layer`) and its relative errors against the truth
+    over the cells some pixel's centre lies in (``cell_leakage_median_rel_err``,
+    ``cell_leakage_p99_rel_err``, ``cell_leakage_max_rel_err``)."""
+    from ..optics import leakage_map
+
+    ratio, noise = leakage_from_halves(*emulated_leakage_frames(truth, frames, seed))
+    cells, leak = leakage_per_cell(ratio, known, noise)
+    err = np.abs(leak / leakage_map(truth).ravel()[cells] - 1)
+    errors = {
+        "cell_leakage_median_rel_err": float(np.median(err)),
+        "cell_leakage_p99_rel_err": float(np.percentile(err, 99)),
+        "cell_leakage_max_rel_err": float(err.max()),
+    }
+    return cell_leakage_layer(cells, leak, known), errors
+
+
+def _sweep(size: tuple[int, int], counts: tuple[int, ...] = (16, 256, 1024, 4096)) -> None:
+    """Print the per-cell errors of the emulated realistic rig of ``size`` against the
+    number of flat frames, the truth's geometry given."""
+    from ..optics import rig_profile
+
+    rig = rig_profile("realistic", size)
+    print(f"realistic rig {size[0]}x{size[1]}, {rig.lcos_cells[0]}x{rig.lcos_cells[1]} cells")
+    print(f"{'frames':>7s} {'noise':>9s} {'median':>7s} {'p99':>7s} {'max':>7s}")
+    for n in counts:
+        ratio, noise = leakage_from_halves(*emulated_leakage_frames(rig, n))
+        _, err = calibrate_cell_leakage(rig, rig, n)
+        print(
+            f"{n:7d} {noise:9.3g} {err['cell_leakage_median_rel_err']:7.2%}"
+            f" {err['cell_leakage_p99_rel_err']:7.2%} {err['cell_leakage_max_rel_err']:7.2%}",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    import sys
+
+    wh = sys.argv[1] if len(sys.argv) > 1 else "320x240"
+    _sweep(tuple(int(v) for v in wh.split("x")))
