@@ -76,6 +76,7 @@ def test_calibrate_from_folder(tmp_path):
     assert [s.split(" (")[0] for s in cal.provenance["skipped"]] == [
         "measurement -> VET mapping",
         "trigger offset and switching time",
+        "per-cell leakage",
         "trigger jitter and drop rate",
     ]
     # The Gray-code edges of this folder are sharp: no relay blur. Its measurement flat

@@ -152,7 +152,9 @@ def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, floa
     ``mapping_rms_px`` (:func:`.parts.mapping_error_px`), ``trigger_offset_err_s``
     (signed, s), ``switch_rel_err`` and ``relay_blur_rel_err`` (signed, relative), and for the per-pixel leakage map
     against the relay-blurred per-cell truth ``leakage_px_max_rel_err`` and
-    ``leakage_px_rms_rel_err`` (over the pixels where it is finite), and the
+    ``leakage_px_rms_rel_err`` (over the pixels where it is finite), for the per-cell
+    map's layer against the leakage of each pixel's true cell
+    ``cell_leakage_px_median_rel_err`` and ``cell_leakage_px_max_rel_err``, and the
     measurement camera's (:func:`.meas_flat.measure_part_errors`). Parts missing from
     ``cal`` are left out."""
     from ..optics import pixel_leakage, relay_blur
@@ -184,4 +186,11 @@ def compare_parts_to_truth(cal: Calibration, truth: RigParams) -> dict[str, floa
         if rel.size:
             out["leakage_px_max_rel_err"] = float(np.abs(rel).max())
             out["leakage_px_rms_rel_err"] = float(np.sqrt(np.mean(rel * rel)))
+    if cal.cell_leakage is not None and tuple(cal.sensor_size) == tuple(truth.sensor_size):
+        w, h = truth.sensor_size
+        rel = np.abs(cal.cell_leakage / pixel_leakage(truth, CellMap.for_rig(truth, (h, w))) - 1)
+        rel = rel[np.isfinite(rel)]
+        if rel.size:
+            out["cell_leakage_px_median_rel_err"] = float(np.median(rel))
+            out["cell_leakage_px_max_rel_err"] = float(rel.max())
     return out

@@ -52,6 +52,10 @@ class CalibrationFrames:
         Measurement camera, no light, at the same exposures (optional).
     counts : dict
         Frames averaged per part (provenance).
+    halves : dict of str -> (ndarray, ndarray)
+        ``"open"``, ``"closed"``: at their longest exposure, the means of the even- and
+        of the odd-numbered frames (the per-cell leakage's noise, :mod:`.cell_leakage`);
+        present where two or more frames were recorded.
     """
 
     dark: dict[float, np.ndarray] = field(default_factory=dict)
@@ -61,6 +65,7 @@ class CalibrationFrames:
     meas_flat: dict[float, np.ndarray] = field(default_factory=dict)
     meas_dark: dict[float, np.ndarray] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
+    halves: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     def shape(self) -> tuple[int, int] | None:
         """(H, W) of the frames held, or None when there are none."""

@@ -160,10 +160,15 @@ def calibrate_from_folder(
     shape: list[tuple[int, int]] = []
     meas_shape: list[tuple[int, int]] = []
 
-    def mean_of(paths: list[Path], shapes: list[tuple[int, int]] = shape) -> np.ndarray:
+    def mean_of(
+        paths: list[Path], shapes: list[tuple[int, int]] = shape, halves: list | None = None
+    ) -> np.ndarray:
+        """The mean of ``paths``' frames; with ``halves`` (a list), the means of the even-
+        and odd-numbered ones appended to it (two or more frames)."""
         nonlocal done
         acc = None
-        for p in paths:
+        part: list = [None, None]
+        for i, p in enumerate(paths):
             img = read_frame(p)
             if not shapes:
                 shapes.append(img.shape)
@@ -176,9 +181,15 @@ def calibrate_from_folder(
                     f"{shapes[0][1]}x{shapes[0][0]}"
                 )
             acc = img.astype(np.float64) if acc is None else acc + img
+            if halves is not None and len(paths) >= 2:
+                k = i % 2
+                part[k] = img.astype(np.float64) if part[k] is None else part[k] + img
             done += 1
             if progress is not None:
                 progress(done, n_files)
+        if halves is not None and len(paths) >= 2:
+            n_even = (len(paths) + 1) // 2
+            halves.append((part[0] / n_even, part[1] / (len(paths) - n_even)))
         return (acc / len(paths)).astype(np.float32)
 
     frames = CalibrationFrames()
@@ -188,8 +199,12 @@ def calibrate_from_folder(
                 log.warning("calibrate: ignoring %s frames with exposure %g s", kind, t)
                 continue
             cam = meas_shape if kind.startswith("meas") else shape
-            getattr(frames, kind)[t] = mean_of(paths, cam)
+            longest = kind in ("open", "closed") and t == max(timed[kind])
+            split: list | None = [] if longest else None
+            getattr(frames, kind)[t] = mean_of(paths, cam, split)
             frames.counts[f"{kind}_{t:g}s"] = len(paths)
+            if split:
+                frames.halves[kind] = split[0]
     if gray:
         nx, ny = gray_bit_counts(params.lcos_cells)
         needed = 2 * (nx + ny)

@@ -243,6 +243,8 @@ def fit_folder_parts(
         skip("relay blur (no Gray-code frames)")
 
     _measure_flat(cal, params, frames, mapping, info, skip)
+    if not params.ideal_shutter or cal.parts.get("relay_blur_px", 0.0) > 0:
+        _cell_leakage(cal, params, frames, info, skip)
     if clock is None:
         skip("trigger jitter and drop rate (no meas_timestamps.csv)")
     else:
@@ -317,3 +319,44 @@ def _measure_flat(
         return
     cal.parts.update(got[0])
     info["measure_flat"] = got[1]
+
+
+def _cell_leakage(
+    cal: Calibration,
+    params: RigParams,
+    frames: CalibrationFrames | None,
+    info: dict,
+    skip: Callable[[str], None],
+) -> None:
+    """The per-cell leakage (:mod:`.cell_leakage`) into ``cal.cell_leakage`` from the
+    halves of the open and closed flat fields at their longest exposure, through the
+    homography and relay blur found (or skipped)."""
+    from .cell_leakage import leakage_from_halves, leakage_per_cell
+    from .sensor_models import signal_rate
+
+    halves = {} if frames is None else frames.halves
+    if "open" not in halves or "closed" not in halves or cal.homography is None:
+        skip(
+            "per-cell leakage (need two or more open_ and closed_ frames at the longest "
+            "exposure, and the Gray code)"
+        )
+        return
+    bias = 0.0 if cal.bias_dn is None else cal.bias_dn
+    dark = 0.0 if cal.dark_current_e_s is None else cal.dark_current_e_s * params.gain_dn_per_e
+    t_o, t_c = max(frames.open), max(frames.closed)
+    closed = np.stack([signal_rate(f, t_c, bias, dark) for f in halves["closed"]])
+    opened = np.stack([signal_rate(f, t_o, bias, dark) for f in halves["open"]])
+    ratio, noise = leakage_from_halves(closed, opened)
+    ratio = np.nan_to_num(ratio, nan=float(np.nanmedian(ratio)), posinf=1.0, neginf=0.0)
+    rig = params.replace(
+        sensor_size=tuple(cal.sensor_size),
+        lcos_cells=tuple(cal.lcos_cells),
+        homography=np.asarray(cal.homography, float).tolist(),
+        relay_blur_px=float(cal.parts.get("relay_blur_px", params.relay_blur_px)),
+    )
+    cells, _, cal.cell_leakage = leakage_per_cell(np.clip(ratio, 0.0, 1.0), rig, noise)
+    info["cell_leakage"] = {
+        "frames": int(min(frames.counts[f"open_{t_o:g}s"], frames.counts[f"closed_{t_c:g}s"])),
+        "noise": noise,
+        "cells": int(cells.size),
+    }
