@@ -93,8 +93,10 @@ def run_calibration(
             save_frames, size, overrides, seed, profile, settings, force, progress, live
         )
     if rig_spec == "sim":
+        from ..optics import rig_profile
+
         wh = size or RigParams().sensor_size
-        cells = overrides.get("lcos_cells", RigParams().lcos_cells)
+        cells = rig_profile(profile, wh, **overrides).lcos_cells  # (the profile's grid)
         true_h = None if true_homography is None else parse_homography(true_homography, cells, wh)
         return calibrate_sim(wh, overrides, true_h, seed, scene, progress, settings, profile)
     from ..devices.rigs import load_rig_file, open_rig
