@@ -149,8 +149,8 @@ def leakage_per_cell(
     estimated from the map). A pixel whose centre lies within ``margin_px`` of a cell
     edge, where the calibrated geometry cannot tell its cell, first gets an unknown of
     its own; it is then given the candidate cell whose value its own is clearly nearest
-    (under 0.3 of the distance to the next candidate) and the map solved again; the
-    rest keep their own.
+    (under 0.3 of the distance to the next candidate; every candidate estimated) and
+    the map solved again; the rest keep their own.
 
     Returns
     -------
@@ -182,7 +182,7 @@ def leakage_per_cell(
         best = cand[amb, k]
         nearest = dist[np.arange(amb.size), k]
         runner_up = np.where(cand[amb] != best[:, None], dist, np.inf).min(axis=1)
-        sure = nearest < 0.3 * runner_up
+        sure = (nearest < 0.3 * runner_up) & np.isfinite(runner_up)  # (every one estimated)
         label[amb[sure]] = best[sure]
         unk, inv, e = _map_solve(label, y, noise, sigma, n_cells, iters)
     layer = np.clip(e[inv], 0.0, 0.999).astype(np.float32).reshape(h, w)

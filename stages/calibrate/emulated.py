@@ -167,8 +167,9 @@ def calibrate_sim(
         from .calfile import apply_calibration
         from .cell_leakage import LEAKAGE_FRAMES, calibrate_cell_leakage
 
+        truth = p.replace(homography=true_h.tolist())  # (p keeps the nominal one)
         known = apply_calibration(p, cal)
-        cal.cell_leakage, errors = calibrate_cell_leakage(p, known, LEAKAGE_FRAMES, seed)
+        cal.cell_leakage, errors = calibrate_cell_leakage(truth, known, LEAKAGE_FRAMES, seed)
         cal.provenance["errors_vs_truth"].update(errors)
         cal.provenance.setdefault("parts_fit", {})["cell_leakage"] = {"flat_frames": LEAKAGE_FRAMES}
     return cal
