@@ -339,3 +339,40 @@ def test_a_capture_with_its_stream_in_the_main_part_still_reads(tmp_path, monkey
     np.testing.assert_array_equal(old.measure, new.measure)
     np.testing.assert_array_equal(old.I, new.I)
     assert old.meta == new.meta
+
+
+def test_npz_headers_are_parsed_one_at_a_time_while_layers_load_on_threads(
+    tmp_path, small_capture, monkeypatch
+):
+    """A capture's .npz layers load on threads; numpy parses each .npy header with ast,
+    which CPython 3.11 cannot run on two threads at once (a SystemError, now and then):
+    no two header parses overlap, and the layers read back whole."""
+    import threading
+    import time
+
+    from stages.formats import read_capture, write_capture
+
+    write_capture(tmp_path / "c.npz", small_capture)
+    inside, overlaps = [0], [0]
+    guard = threading.Lock()
+    import ast
+
+    real = ast.literal_eval
+
+    def slow_header(*args, **kwargs):
+        with guard:
+            inside[0] += 1
+            overlaps[0] += inside[0] > 1
+        time.sleep(0.002)
+        try:
+            return real(*args, **kwargs)
+        finally:
+            with guard:
+                inside[0] -= 1
+
+    monkeypatch.setattr(ast, "literal_eval", slow_header)
+    monkeypatch.setattr("stages.formats.layered.solve_threads", lambda: 2)
+    back = read_capture(tmp_path / "c.npz")
+    assert overlaps[0] == 0
+    np.testing.assert_array_equal(back.measure, small_capture.measure)
+    np.testing.assert_array_equal(back.I, small_capture.I)

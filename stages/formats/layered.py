@@ -121,18 +121,29 @@ _NPY_ERRORS = (
 )
 
 
+#: The .npy header is a Python literal that numpy parses with ``ast``, which CPython 3.11
+#: cannot do on two threads at once ("SystemError: AST constructor recursion depth
+#: mismatch"); members read on threads parse their headers one at a time.
+_HEADER_LOCK = threading.Lock()
+
+
+def _read_npy_header(fp) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """``(shape, fortran_order, dtype)`` of the .npy stream ``fp``, left at its data."""
+    with _HEADER_LOCK:
+        version = np.lib.format.read_magic(fp)
+        if version == (1, 0):
+            return np.lib.format.read_array_header_1_0(fp)
+        if version == (2, 0):
+            return np.lib.format.read_array_header_2_0(fp)
+    raise ValueError(f"unsupported .npy version {version}")
+
+
 def _npz_member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str):
     """``(shape, dtype, header bytes)`` of one .npy member, read without inflating its data."""
     member = info.filename
     try:
         with zf.open(info) as fp:
-            version = np.lib.format.read_magic(fp)
-            if version == (1, 0):
-                shape, _, dtype = np.lib.format.read_array_header_1_0(fp)
-            elif version == (2, 0):
-                shape, _, dtype = np.lib.format.read_array_header_2_0(fp)
-            else:
-                raise ValueError(f"unsupported .npy version {version}")
+            shape, _, dtype = _read_npy_header(fp)
             header = fp.tell()
     except _NPY_ERRORS as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
@@ -153,9 +164,22 @@ def _npz_member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str):
 
 
 def _npz_array(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str) -> np.ndarray:
+    """One .npy member's array (its header checked by :func:`_npz_member_header`), its
+    data inflated straight into the array (safe on threads)."""
     try:
         with zf.open(info) as fp:
-            return np.lib.format.read_array(fp, allow_pickle=False)
+            shape, fortran, dtype = _read_npy_header(fp)
+            if dtype.hasobject:
+                raise ValueError("it holds Python objects (pickle); refusing to load")
+            arr = np.empty(shape, dtype, order="F" if fortran else "C")
+            view = memoryview(arr.reshape(-1, order="A").view(np.uint8))
+            got = 0
+            while got < view.nbytes:
+                n = fp.readinto(view[got:])
+                if not n:
+                    raise EOFError(f"{got} of {view.nbytes} bytes of data")
+                got += n
+            return arr
     except _NPY_ERRORS as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise FormatError(f"{what}: corrupt .npz member {info.filename!r} ({first})") from None
