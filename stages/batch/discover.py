@@ -162,7 +162,7 @@ def probe_kind(path: str | Path) -> str | None:
 
 
 def _npz_kind(path: str | Path) -> str | None:
-    import numpy as np
+    from ..formats.layered import read_npy
 
     with zipfile.ZipFile(path) as zf:
         if "__meta__.npy" not in zf.namelist():
@@ -170,7 +170,7 @@ def _npz_kind(path: str | Path) -> str | None:
         if zf.getinfo("__meta__.npy").file_size > MAX_HEADER_BYTES:
             raise ValueError("metadata too large")
         with zf.open("__meta__.npy") as fp:
-            text = str(np.lib.format.read_array(fp, allow_pickle=False))
+            text = str(read_npy(fp))
     try:
         meta = parse_json(text, str(path))
     except FormatError:

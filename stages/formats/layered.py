@@ -163,23 +163,29 @@ def _npz_member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str):
     return tuple(int(n) for n in shape), dtype, header
 
 
+def read_npy(fp) -> np.ndarray:
+    """The array of the .npy stream ``fp`` (a file or zip member), read into place; safe
+    on threads, unlike ``np.lib.format.read_array`` (:data:`_HEADER_LOCK`). ValueError on
+    Python objects (no pickle), EOFError on truncated data."""
+    shape, fortran, dtype = _read_npy_header(fp)
+    if dtype.hasobject:
+        raise ValueError("it holds Python objects (pickle); refusing to load")
+    arr = np.empty(shape, dtype, order="F" if fortran else "C")
+    view = memoryview(arr.reshape(-1, order="A").view(np.uint8))
+    got = 0
+    while got < view.nbytes:
+        n = fp.readinto(view[got:])
+        if not n:
+            raise EOFError(f"{got} of {view.nbytes} bytes of data")
+        got += n
+    return arr
+
+
 def _npz_array(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str) -> np.ndarray:
-    """One .npy member's array (its header checked by :func:`_npz_member_header`), its
-    data inflated straight into the array (safe on threads)."""
+    """One .npy member's array (its header checked by :func:`_npz_member_header`)."""
     try:
         with zf.open(info) as fp:
-            shape, fortran, dtype = _read_npy_header(fp)
-            if dtype.hasobject:
-                raise ValueError("it holds Python objects (pickle); refusing to load")
-            arr = np.empty(shape, dtype, order="F" if fortran else "C")
-            view = memoryview(arr.reshape(-1, order="A").view(np.uint8))
-            got = 0
-            while got < view.nbytes:
-                n = fp.readinto(view[got:])
-                if not n:
-                    raise EOFError(f"{got} of {view.nbytes} bytes of data")
-                got += n
-            return arr
+            return read_npy(fp)
     except _NPY_ERRORS as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise FormatError(f"{what}: corrupt .npz member {info.filename!r} ({first})") from None
