@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..optics import HOST_CELL_MARGIN_PX, pixel_leakage, relay_blur
+from ..optics import pixel_leakage, relay_blur
 from ..physics import CellMap
 from ..rig import RigParams
 
@@ -131,13 +131,18 @@ def _map_solve(
     return unk, inv, pcg(normal, b, counts + prior, e0, iters)
 
 
+#: Margins (VET px) the per-cell solve tries in turn for the calibrated geometry's
+#: uncertainty: the first whose fit explains the map to its noise is kept.
+MARGINS_PX = (0.02, 0.05, 0.1, 0.2)
+
+
 def leakage_per_cell(
     ratio: np.ndarray,
     rig: RigParams,
     noise: float,
     iters: int = 1000,
-    margin_px: float = HOST_CELL_MARGIN_PX,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    margins_px: tuple[float, ...] = MARGINS_PX,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Per-cell leakage from a per-pixel map (:func:`leakage_per_pixel`) through the
     relay blur and the cell geometry of ``rig`` (its homography, as calibrated, and
     ``relay_blur_px``).
@@ -146,11 +151,13 @@ def leakage_per_cell(
     ``|blur(P e) - ratio|^2 / noise^2 + |e - m|^2 / s^2`` by conjugate gradients
     (``P``: the unknown each pixel sees; ``noise``: the ratio's standard error per pixel,
     :func:`leakage_from_halves`; ``m`` and ``s``: the cells' median and spread,
-    estimated from the map). A pixel whose centre lies within ``margin_px`` of a cell
-    edge, where the calibrated geometry cannot tell its cell, first gets an unknown of
-    its own; it is then given the candidate cell whose value its own is clearly nearest
-    (under 0.3 of the distance to the next candidate; every candidate estimated) and
-    the map solved again; the rest keep their own.
+    estimated from the map). A pixel whose centre lies within a margin of a cell edge,
+    where the calibrated geometry cannot tell its cell, first gets an unknown of its
+    own; it is then given the candidate cell whose value its own is clearly nearest
+    (under 0.3 of the distance to the next candidate; every candidate estimated) and the
+    map solved again; the rest keep their own. The margins ``margins_px`` are tried in
+    turn until the fit's mean squared residual is within the noise (``chi2`` at most
+    1): a pixel given the wrong cell leaves a residual far above it.
 
     Returns
     -------
@@ -161,10 +168,25 @@ def leakage_per_cell(
     layer : ndarray of shape (H, W), float32
         Each pixel's leakage: its cell's, or its own; within [0, 0.999], NaN outside the
         LCoS (``Calibration.cell_leakage``).
+    fit : dict
+        ``margin_px`` kept and its ``chi2`` (mean squared residual over noise squared).
     """
-    h, w = ratio.shape
+    best = None
+    for margin in margins_px:
+        got = _solve_at_margin(np.asarray(ratio, np.float64), rig, noise, iters, margin)
+        if best is None or got[3]["chi2"] < best[3]["chi2"]:
+            best = got
+        if got[3]["chi2"] <= 1.0:
+            return got
+    return best
+
+
+def _solve_at_margin(
+    y: np.ndarray, rig: RigParams, noise: float, iters: int, margin_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """:func:`leakage_per_cell` at one margin."""
+    h, w = y.shape
     n_cells = rig.lcos_cells[0] * rig.lcos_cells[1]
-    y = np.asarray(ratio, np.float64)
     cand = _candidate_cells(rig, (h, w), margin_px)
     label = cand[:, 4].copy()
     amb = np.flatnonzero((cand != cand[:, 4:5]).any(axis=1))
@@ -185,10 +207,13 @@ def leakage_per_cell(
         sure = (nearest < 0.3 * runner_up) & np.isfinite(runner_up)  # (every one estimated)
         label[amb[sure]] = best[sure]
         unk, inv, e = _map_solve(label, y, noise, sigma, n_cells, iters)
-    layer = np.clip(e[inv], 0.0, 0.999).astype(np.float32).reshape(h, w)
+    per_pixel = e[inv].reshape(h, w)
+    resid = relay_blur(per_pixel.astype(np.float32), sigma).astype(np.float64) - y
+    chi2 = float(np.mean(resid**2)) / max(noise, 1e-12) ** 2
+    layer = np.clip(per_pixel, 0.0, 0.999).astype(np.float32)
     layer[(cand[:, 4] >= n_cells).reshape(h, w)] = np.nan
     cells = unk < n_cells
-    return unk[cells], e[cells].astype(np.float32), layer
+    return unk[cells], e[cells].astype(np.float32), layer, {"margin_px": margin_px, "chi2": chi2}
 
 
 def calibrate_cell_leakage(
@@ -196,24 +221,27 @@ def calibrate_cell_leakage(
     known: RigParams,
     frames: int = LEAKAGE_FRAMES,
     seed: int = 0,
-    margin_px: float = HOST_CELL_MARGIN_PX,
+    margins_px: tuple[float, ...] = MARGINS_PX,
 ) -> tuple[np.ndarray, dict]:
     """The per-cell leakage of the emulated rig ``truth`` from ``frames`` flat frames
     each all closed and all open (:func:`emulated_leakage_frames`), solved through the
-    geometry the calibration found (``known``: its homography and relay blur, uncertain
-    by ``margin_px``: 0 when it is the truth's). Returns the layer
-    (:func:`leakage_per_cell`) and its relative errors against the truth over the cells
-    estimated (``cell_leakage_median_rel_err``, ``cell_leakage_p99_rel_err``,
-    ``cell_leakage_max_rel_err``)."""
+    geometry the calibration found (``known``: its homography and relay blur; the
+    margins for its uncertainty ``margins_px``, ``(0,)`` when it is the truth's).
+    Returns the layer (:func:`leakage_per_cell`) and, against the truth, the relative
+    errors over the cells estimated (``cell_leakage_median_rel_err``,
+    ``cell_leakage_p99_rel_err``, ``cell_leakage_max_rel_err``) with the fit's
+    ``cell_leakage_margin_px`` and ``cell_leakage_chi2``."""
     from ..optics import leakage_map
 
     ratio, noise = leakage_from_halves(*emulated_leakage_frames(truth, frames, seed))
-    cells, leak, layer = leakage_per_cell(ratio, known, noise, margin_px=margin_px)
+    cells, leak, layer, fit = leakage_per_cell(ratio, known, noise, margins_px=margins_px)
     err = np.abs(leak / leakage_map(truth).ravel()[cells] - 1)
     errors = {
         "cell_leakage_median_rel_err": float(np.median(err)),
         "cell_leakage_p99_rel_err": float(np.percentile(err, 99)),
         "cell_leakage_max_rel_err": float(err.max()),
+        "cell_leakage_margin_px": fit["margin_px"],
+        "cell_leakage_chi2": fit["chi2"],
     }
     return layer, errors
 
@@ -228,7 +256,7 @@ def _sweep(size: tuple[int, int], counts: tuple[int, ...] = (16, 256, 1024, 4096
     print(f"{'frames':>7s} {'noise':>9s} {'median':>7s} {'p99':>7s} {'max':>7s}")
     for n in counts:
         ratio, noise = leakage_from_halves(*emulated_leakage_frames(rig, n))
-        _, err = calibrate_cell_leakage(rig, rig, n, margin_px=0.0)
+        _, err = calibrate_cell_leakage(rig, rig, n, margins_px=(0.0,))
         print(
             f"{n:7d} {noise:9.3g} {err['cell_leakage_median_rel_err']:7.2%}"
             f" {err['cell_leakage_p99_rel_err']:7.2%} {err['cell_leakage_max_rel_err']:7.2%}",

@@ -379,7 +379,7 @@ def selftest(size: tuple[int, int] = (320, 240), seed: int = 0) -> dict:
     cm = CellMap.for_rig(rig, (size[1], size[0]))
     true_px = relay_blur(pixel_leakage(rig, cm), rig.relay_blur_px)
     px_err = float(np.abs(ratio / true_px - 1).max())
-    _, cell_errors = calibrate_cell_leakage(rig, rig, seed=seed, margin_px=0.0)
+    _, cell_errors = calibrate_cell_leakage(rig, rig, seed=seed, margins_px=(0.0,))
     return {
         "mapping_rms_px": mapping_error_px(est, rig),
         "k1": (fit["measure_k1"], rig.measure_k1),

@@ -354,9 +354,10 @@ def _cell_leakage(
         homography=np.asarray(cal.homography, float).tolist(),
         relay_blur_px=float(cal.parts.get("relay_blur_px", params.relay_blur_px)),
     )
-    cells, _, cal.cell_leakage = leakage_per_cell(np.clip(ratio, 0.0, 1.0), rig, noise)
+    cells, _, cal.cell_leakage, fit = leakage_per_cell(np.clip(ratio, 0.0, 1.0), rig, noise)
     info["cell_leakage"] = {
         "frames": int(min(frames.counts[f"open_{t_o:g}s"], frames.counts[f"closed_{t_c:g}s"])),
         "noise": noise,
         "cells": int(cells.size),
+        **fit,
     }
