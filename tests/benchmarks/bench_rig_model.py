@@ -18,7 +18,9 @@ runs in real time: on a busy
 machine the host falls behind, closures come late (T records them) and the figures move.
 
 Run: ``.venv/bin/python -m tests.benchmarks.bench_rig_model [WxH] [--simulate|--capture]``
-(both tables by default, as ``make bench`` runs it).
+(both tables by default, as ``make bench`` runs it); ``--calibrate`` prints the
+calibration's errors against the emulated truth alone (``1280x1024 --calibrate``: the
+published rig's size).
 """
 
 from __future__ import annotations
@@ -80,6 +82,18 @@ def simulated(size: tuple[int, int] = (320, 240)) -> list[dict]:
         )
         rows.append(out)
     return rows
+
+
+def calibration_errors(size: tuple[int, int]) -> dict:
+    """``vet calibrate --rig sim --rig-profile realistic`` at ``size``: its errors against
+    the emulated truth, one per line."""
+    from stages.calibrate import run_calibration
+
+    errors = run_calibration("sim", size=size, profile="realistic").provenance["errors_vs_truth"]
+    print(f"calibration errors vs truth, realistic rig {size[0]}x{size[1]}:")
+    for k, v in errors.items():
+        print(f"  {k:32s} {v:.4g}")
+    return errors
 
 
 def capture_chain(size: tuple[int, int] = (320, 240)) -> list[dict]:
@@ -157,7 +171,9 @@ if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     wh = args[0] if args else "320x240"
     w, h = (int(v) for v in wh.split("x"))
-    if "--capture" in sys.argv:
+    if "--calibrate" in sys.argv:
+        calibration_errors((w, h))
+    elif "--capture" in sys.argv:
         capture_chain((w, h))
     elif "--simulate" in sys.argv:
         simulated((w, h))
