@@ -376,3 +376,20 @@ def test_npz_headers_are_parsed_one_at_a_time_while_layers_load_on_threads(
     assert overlaps[0] == 0
     np.testing.assert_array_equal(back.measure, small_capture.measure)
     np.testing.assert_array_equal(back.I, small_capture.I)
+
+
+@pytest.mark.parametrize("ext", ["exr", "npz"])
+def test_a_capture_read_without_its_truth_holds_everything_else(tmp_path, small_capture, ext):
+    """read_capture(truth=False), as vet deblur reads a capture: the simulator's truth
+    layers are left unread, every other layer is the same."""
+    from stages.formats import read_capture, write_capture
+
+    write_capture(tmp_path / f"c.{ext}", small_capture)
+    full = read_capture(tmp_path / f"c.{ext}")
+    bare = read_capture(tmp_path / f"c.{ext}", truth=False)
+    assert full.truth is not None and full.truth_motion is not None
+    assert bare.truth is None and bare.truth_motion is None and bare.truth_layers is None
+    np.testing.assert_array_equal(bare.I, full.I)
+    np.testing.assert_array_equal(bare.T, full.T)
+    np.testing.assert_array_equal(bare.measure, full.measure)
+    assert bare.rig == full.rig and bare.meta == full.meta

@@ -157,7 +157,9 @@ def cli(
         force,
     )
     source = resolve_capture_path(capture)
-    cap = read_capture(source)
+    # (the simulator's truth layers only for the truth's motion: a reconstruction
+    # holds no more than it uses)
+    cap = read_capture(source, truth=motion_init == "truth")
     if method == "burst":
         from stages.burst import burst_hdr
 

@@ -363,10 +363,17 @@ def resolve_capture_path(path: str | Path) -> str:
     return str(p)
 
 
-def read_capture(path: str | Path) -> Capture:
+#: The simulator's truth layers (``simulate``, the emulated rig): for scoring only.
+TRUTH_LAYERS = frozenset({"truth", "truth_motion", "truth_layers"})
+
+
+def read_capture(path: str | Path, truth: bool = True) -> Capture:
+    """The capture at ``path`` (a file, a capture folder or ``-``); ``truth=False``
+    leaves the simulator's truth layers unread (:data:`TRUTH_LAYERS`: a reconstruction
+    that does not score itself does not hold them)."""
     real = resolve_capture_path(path)
     what = "standard input" if real == "-" else real
-    return Capture.from_layered(read_layered(real), what)
+    return Capture.from_layered(read_layered(real, frozenset() if truth else TRUTH_LAYERS), what)
 
 
 def write_capture(path: str | Path, capture: Capture) -> None:

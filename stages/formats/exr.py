@@ -353,22 +353,22 @@ def _parts(inp: Any, what: str) -> list[_Part]:
     return heads
 
 
-def read_exr(path: Path, what: str | None = None) -> Layered:
-    """Read a vet EXR, every part of it. Its metadata (size- and depth-limited JSON),
-    the layer sizes it declares (:class:`~stages.formats.container.SizeCheck`) and the
-    pixel bytes of all parts together (:mod:`stages.formats.limits`) are checked before
-    any pixel is read."""
+def read_exr(path: Path, what: str | None = None, skip: frozenset[str] = frozenset()) -> Layered:
+    """Read a vet EXR, every part of it but the layers named in ``skip``. Its metadata
+    (size- and depth-limited JSON), the layer sizes it declares
+    (:class:`~stages.formats.container.SizeCheck`) and the pixel bytes of all parts
+    together (:mod:`stages.formats.limits`) are checked before any pixel is read."""
     what = what or str(path)
     inp = _open(path, what)
     try:
-        return _read_exr(inp, path, what)
+        return _read_exr(inp, path, what, skip)
     except UnicodeDecodeError:
         raise FormatError(f"{what}: header holds names or text that are not UTF-8") from None
     finally:
         inp.close()
 
 
-def _read_exr(inp: Any, path: str | Path, what: str) -> Layered:
+def _read_exr(inp: Any, path: str | Path, what: str, skip: frozenset[str] = frozenset()) -> Layered:
     heads = _parts(inp, what)
     nch = sum(p.nch for p in heads)
     if nch > MAX_CHANNELS:
@@ -398,6 +398,8 @@ def _read_exr(inp: Any, path: str | Path, what: str) -> Layered:
     for head, groups in zip(heads, grouped, strict=True):
         ordered: dict[str, list[tuple[str, int]]] = {}
         for layer, chans in groups.items():
+            if layer in skip:
+                continue
             wanted = order.get(layer)
             if (
                 isinstance(wanted, list)
@@ -407,6 +409,8 @@ def _read_exr(inp: Any, path: str | Path, what: str) -> Layered:
                 idx = dict(chans)
                 chans = [(c, idx[c]) for c in wanted]
             ordered[layer] = chans
+        if not ordered:
+            continue
         for layer, array in head.layers(inp, ordered).items():
             data.layers[layer] = array
             data.channels[layer] = [c for c, _ in ordered[layer]]

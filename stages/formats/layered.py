@@ -203,7 +203,7 @@ def _npz_table(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str) -> Any:
     return limits.parse_json(str(_npz_array(zf, info, what)), what, kind)
 
 
-def read_npz(path: Path, what: str | None = None) -> Layered:
+def read_npz(path: Path, what: str | None = None, skip: frozenset[str] = frozenset()) -> Layered:
     """Read a vet npz, checking every member's declared shape before inflating any.
 
     Order: member names and zip methods; each member's .npy header (no pickles; declared
@@ -262,6 +262,7 @@ def read_npz(path: Path, what: str | None = None) -> Layered:
             kept = dtype in COMPACT_DTYPES
             total += math.prod(shape) * (dtype.itemsize if kept else max(dtype.itemsize, 4))
         limits.check_declared(total, on_disk, what)
+        layers = {name: v for name, v in layers.items() if name not in skip}
         data = Layered(meta=meta)
         # Each member inflated into its place (the stream's into one stack).
         data.layers = empty_layers(
@@ -322,8 +323,9 @@ def _parse_meta(source: Any, what: str, zf: zipfile.ZipFile | None = None) -> di
     return parse_meta(_npz_table(zf, source, what) if zf is not None else source, what)
 
 
-def read_layered(path: str | Path) -> Layered:
-    """Read a vet file (EXR or npz, sniffed by magic bytes); ``-`` reads stdin.
+def read_layered(path: str | Path, skip: frozenset[str] = frozenset()) -> Layered:
+    """Read a vet file (EXR or npz, sniffed by magic bytes); ``-`` reads stdin. Layers
+    named in ``skip`` are checked but not kept (an npz does not inflate them).
 
     The metadata is validated against :mod:`stages.formats.schema` before the pixels are
     read, and the layers against the metadata after.
@@ -339,7 +341,7 @@ def read_layered(path: str | Path) -> Layered:
     what = "standard input" if str(path) == "-" else str(path)
     with spooled_input(path) as real:
         kind = sniff(real)
-        data = read_exr(real, what) if kind == "exr" else read_npz(real, what)
+        data = read_exr(real, what, skip) if kind == "exr" else read_npz(real, what, skip)
     schema.check_layers(data.meta, data.layers, data.channels, what)
     return data
 
