@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .physics import CellMap, cells_at
+from .physics import CellMap, cells_near
 from .rig import REAL_RIG_PARTS, RigParams
 
 #: Named rig profiles of ``--rig-profile``.
@@ -358,11 +358,8 @@ class MeasureGeometry:
         cm = CellMap(hom, rig.lcos_cells, self.shape_m, points=(self.xv, self.yv))
         h, w = cellmap_vet.pixel_cell.shape[:2]
         yy, xx = np.mgrid[0:h, 0:w] + 0.5
-        d = HOST_CELL_MARGIN_PX
         near = np.zeros(cm.n_cells + 1, bool)  # (the last: outside the LCoS)
-        for dx in (-d, 0.0, d):
-            for dy in (-d, 0.0, d):
-                near[cells_at(hom, rig.lcos_cells, xx + dx, yy + dy).ravel()] = True
+        near[cells_near(hom, rig.lcos_cells, xx, yy, HOST_CELL_MARGIN_PX).ravel()] = True
         owned = np.zeros(cm.n_cells + 1, bool)
         owned[cm.pixel_cell.ravel()] = True
         orphans = np.flatnonzero(near[:-1] & ~owned[:-1])

@@ -176,6 +176,23 @@ def cells_at(
     return np.where(inside, cy * cw + cx, cw * ch).reshape(x.shape)
 
 
+def cells_near(
+    homography: np.ndarray,
+    lcos_cells: tuple[int, int],
+    x: np.ndarray,
+    y: np.ndarray,
+    margin_px: float,
+) -> np.ndarray:
+    """The cells each sensor point ``(x, y)`` could lie in with the homography known
+    within ``margin_px``: :func:`cells_at` of the point and of its eight neighbours at
+    that distance, (x.size, 9) int64, column 4 the point's own."""
+    d = (-margin_px, 0.0, margin_px)
+    return np.stack(
+        [cells_at(homography, lcos_cells, x + dx, y + dy).ravel() for dy in d for dx in d],
+        axis=1,
+    )
+
+
 class CellMap:
     """Which LCoS cell governs each sensor pixel, through the calibration homography.
 

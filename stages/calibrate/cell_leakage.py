@@ -81,17 +81,13 @@ def leakage_from_halves(closed: np.ndarray, opened: np.ndarray) -> tuple[np.ndar
 
 def _candidate_cells(rig: RigParams, shape: tuple[int, int], margin_px: float) -> np.ndarray:
     """The cells each VET pixel's centre could lie in, the geometry known within
-    ``margin_px``: (H * W, 9) int64 (the centre's and its eight neighbours' at the margin,
-    ``cells_w * cells_h`` outside the LCoS); column 4 is the centre's own."""
-    from ..physics import cells_at
+    ``margin_px``: (H * W, 9) int64 (:func:`~stages.physics.cells_near`; ``cells_w *
+    cells_h`` outside the LCoS), column 4 the centre's own."""
+    from ..physics import cells_near
 
     h, w = shape
     ys, xs = np.mgrid[0:h, 0:w] + 0.5
-    hom = np.asarray(rig.homography, np.float64)
-    d = (-margin_px, 0.0, margin_px)
-    return np.stack(
-        [cells_at(hom, rig.lcos_cells, xs + dx, ys + dy).ravel() for dy in d for dx in d], axis=1
-    )
+    return cells_near(np.asarray(rig.homography, np.float64), rig.lcos_cells, xs, ys, margin_px)
 
 
 def _map_solve(
