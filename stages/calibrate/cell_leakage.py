@@ -10,11 +10,15 @@ functions record the frames on the emulated rig's physics (its truth in ``RigPar
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from ..optics import pixel_leakage, relay_blur
 from ..physics import CellMap
 from ..rig import RigParams
+
+log = logging.getLogger("vet.calibrate")
 
 #: Flat frames a calibration averages, each all closed and all open, for the per-cell
 #: leakage: the relay blur's deconvolution amplifies the noise, and at the published
@@ -169,6 +173,7 @@ def leakage_per_cell(
     """
     best = None
     for margin in margins_px:
+        log.info("calibrate: per-cell leakage through the relay blur (margin %g px)", margin)
         got = _solve_at_margin(np.asarray(ratio, np.float64), rig, noise, iters, margin)
         if best is None or got[3]["chi2"] < best[3]["chi2"]:
             best = got
