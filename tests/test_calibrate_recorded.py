@@ -185,3 +185,35 @@ def test_a_measurement_flat_field_of_its_own_size_without_its_dark_frames(tmp_pa
     assert any(
         "gain ratio (measurement and VET frames differ" in s for s in cal.provenance["skipped"]
     )
+
+
+def test_per_cell_leakage_takes_equal_halves_of_the_flat_fields(tmp_path, monkeypatch):
+    """Three open and three closed frames at the longest exposure: the per-cell leakage
+    gets the first and the second frame as its two halves (the third left out, so that
+    the halves' difference measures the noise of equal halves), a layer of the sensor's
+    size, and the frames it used in the provenance."""
+    import cv2
+
+    import stages.calibrate.cell_leakage as cl
+
+    root = tmp_path / "rec"
+    _write_folder(root)
+    for kind in ("open_0.01s", "closed_2s"):
+        first = cv2.imread(str(root / f"{kind}_00.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+        for n, extra in ((1, 4.0), (2, 40.0)):
+            cv2.imwrite(str(root / f"{kind}_{n:02d}.png"), (first + extra).astype(np.uint16))
+    seen = {}
+    real = cl.leakage_from_halves
+
+    def spy(closed, opened):
+        seen["closed"], seen["opened"] = closed, opened
+        return real(closed, opened)
+
+    monkeypatch.setattr(cl, "leakage_from_halves", spy)
+    cal = c.calibrate_from_folder(root)
+    dark = cal.bias_dn + cal.dark_current_e_s * GAIN * 2.0
+    first = cv2.imread(str(root / "closed_2s_00.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_allclose(seen["closed"][0] * 2.0, first - dark, rtol=1e-5, atol=1e-2)
+    np.testing.assert_allclose(seen["closed"][1] * 2.0, first + 4.0 - dark, rtol=1e-5, atol=1e-2)
+    assert cal.cell_leakage.shape == (48, 64)
+    assert cal.provenance["parts_fit"]["cell_leakage"]["frames"] == 3

@@ -164,7 +164,8 @@ def calibrate_from_folder(
         paths: list[Path], shapes: list[tuple[int, int]] = shape, halves: list | None = None
     ) -> np.ndarray:
         """The mean of ``paths``' frames; with ``halves`` (a list), the means of the even-
-        and odd-numbered ones appended to it (two or more frames)."""
+        and odd-numbered ones appended to it (two or more frames; of an odd number, the
+        last left out of the halves, which must be equal)."""
         nonlocal done
         acc = None
         part: list = [None, None]
@@ -181,15 +182,15 @@ def calibrate_from_folder(
                     f"{shapes[0][1]}x{shapes[0][0]}"
                 )
             acc = img.astype(np.float64) if acc is None else acc + img
-            if halves is not None and len(paths) >= 2:
+            if halves is not None and i < len(paths) // 2 * 2:
                 k = i % 2
                 part[k] = img.astype(np.float64) if part[k] is None else part[k] + img
             done += 1
             if progress is not None:
                 progress(done, n_files)
         if halves is not None and len(paths) >= 2:
-            n_even = (len(paths) + 1) // 2
-            halves.append((part[0] / n_even, part[1] / (len(paths) - n_even)))
+            half = len(paths) // 2
+            halves.append((part[0] / half, part[1] / half))
         return (acc / len(paths)).astype(np.float32)
 
     frames = CalibrationFrames()
