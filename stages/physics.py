@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
+from .crossings import CrossingScan
 from .rig import RigParams
 
 #: Above this mean the normal approximation replaces exact Poisson sampling. At lam = 30
@@ -261,15 +262,17 @@ class ClosureController:
 
     A cell closes on its brightest pixel: its maximum running sum reaches the threshold
     exactly when any one of its pixels does, so each step only looks at pixels that
-    crossed (one subtract, one compare, one scan over the frame) instead of reducing every
-    cell; pixels of closed cells are retired so they never trigger again.
+    crossed (:class:`stages.crossings.CrossingScan`: one subtract, one compare, one scan
+    over the frame) instead of reducing every cell. A pixel is retired once it has
+    crossed, so it never triggers again; the other pixels of a cell it closed retire when
+    they cross in turn (their cell is found closed and skipped), which costs less than
+    retiring every pixel of each closed cell at once.
 
     On a measurement camera of its own (:class:`stages.optics.MeasureGeometry`),
     ``extras`` (CSR ``(starts, cells)``, pixel -> further cells it governs: cells smaller
-    than a pixel) closes those cells with the pixel (such pixels retire only when they
-    cross themselves), and ``dn_scale`` (H, W) flat-fields the camera's gain and
-    vignetting (a pixel's running sum is compared with ``threshold / dn_scale``, which is
-    the flat-fielded sum's test without scaling every frame).
+    than a pixel) closes those cells with the pixel, and ``dn_scale`` (H, W) flat-fields
+    the camera's gain and vignetting (a pixel's running sum is compared with ``threshold /
+    dn_scale``, which is the flat-fielded sum's test without scaling every frame).
     ``remaining_dn`` (H, W) is what each pixel still has to gather.
     """
 
@@ -297,7 +300,6 @@ class ClosureController:
         # its running sum), so that each step is one subtract and one compare with 0.
         self.remaining_dn = np.empty((h, w), np.float32)
         self._flat = self.remaining_dn.reshape(-1)
-        self._crossed = np.empty((h, w), bool)
         self.close_subframe = np.full(cellmap.n_cells + 1, self.NEVER, dtype=np.int32)
         self.threshold_dn = np.float32(rig.threshold_dn)
         self.remaining_dn[...] = self.threshold_dn
@@ -309,22 +311,21 @@ class ClosureController:
         if self._keep is not None:  # ... unless they govern cells of their own
             sentinel &= ~self._keep
         self._flat[sentinel] = self._RETIRED
-        # cell -> its pixels, as ranges into the cell-sorted pixel order.
-        n = cellmap.n_cells + 1
-        self._cell_start = np.zeros(n, np.int64)
-        self._cell_count = np.zeros(n, np.int64)
-        counts = np.diff(np.append(cellmap._starts, cellmap.pixel_cell.size))
-        self._cell_start[cellmap._present] = cellmap._starts
-        self._cell_count[cellmap._present] = counts
+        self._scan = CrossingScan(self._flat)
 
     def step(self, frame_dn: np.ndarray, k: int) -> np.ndarray:
         """Add subframe ``k``; return indices of cells that crossed the threshold."""
-        frame = brightest_channel(frame_dn)
-        np.subtract(self.remaining_dn, frame, out=self.remaining_dn, casting="unsafe")
-        np.less_equal(self.remaining_dn, 0, out=self._crossed)
-        if not self._crossed.any():
-            return np.empty(0, np.int64)
-        pix = np.flatnonzero(self._crossed)
+        pix = self._scan(brightest_channel(frame_dn))
+        if pix.size == 0:
+            return pix
+        new = self._open_cells_of(pix)
+        self.close_subframe[new] = k + 1 + self.rig.latency_subframes
+        return new
+
+    def _open_cells_of(self, pix: np.ndarray) -> np.ndarray:
+        """Retire pixels ``pix`` (ascending) that crossed; return the open cells they
+        govern, sorted, duplicates dropped."""
+        self._flat[pix] = self._RETIRED
         new = self.cellmap.pixel_cell.reshape(-1)[pix].astype(np.int64)
         if self._extras is not None:
             starts, cells = self._extras
@@ -333,26 +334,10 @@ class ClosureController:
                 counts = starts[sel + 1] - starts[sel]
                 first = np.repeat(starts[sel] - (np.cumsum(counts) - counts), counts)
                 new = np.concatenate([new, cells[first + np.arange(int(counts.sum()))]])
-            self._flat[pix] = self._RETIRED
-        new = np.sort(new)  # (sorted, duplicates dropped: a sort is cheaper than np.unique)
+        new = new[self.close_subframe[new] == self.NEVER]  # (the sentinel never closes)
+        new = np.sort(new, kind="stable")  # (nearly sorted: pixels come in raster order)
         new = new[np.concatenate((new[:1] == new[:1], new[1:] != new[:-1]))]
-        new = new[(self.close_subframe[new] == self.NEVER) & (new < self.cellmap.n_cells)]
-        self.close_subframe[new] = k + 1 + self.rig.latency_subframes
-        self._retire(new)
-        return new
-
-    def _retire(self, cells: np.ndarray) -> None:
-        counts = self._cell_count[cells]
-        total = int(counts.sum())
-        if total == 0:
-            return
-        starts = self._cell_start[cells]
-        offsets = np.repeat(starts - np.concatenate(([0], np.cumsum(counts)[:-1])), counts)
-        positions = offsets + np.arange(total)
-        pix = self.cellmap._order[positions]
-        if self._keep is not None:
-            pix = pix[~self._keep[pix]]
-        self._flat[pix] = self._RETIRED
+        return new[new < self.cellmap.n_cells]
 
     def open_pixels(self, j: int) -> np.ndarray:
         """Boolean (H, W): pixels whose cell is open during subframe ``j``."""

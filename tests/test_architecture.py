@@ -25,6 +25,7 @@ FLOORS = {
     "provenance": 0,
     "rig": 0,
     "physics": 0,
+    "crossings": 0,
     "optics": 0,
     "measure_grid": 0,
     "formats": 0,

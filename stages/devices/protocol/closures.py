@@ -24,29 +24,41 @@ __all__ = [
 MAX_VARINT_BYTES = 5  # a uint32 needs at most 5 LEB128 bytes
 
 
+_VARINT_STEPS = tuple(1 << (7 * k) for k in range(1, MAX_VARINT_BYTES))
+
+
 def varint_sizes(values: np.ndarray) -> np.ndarray:
     """LEB128 length in bytes of each non-negative value (1 byte per 7 bits, min 1)."""
-    v = np.asarray(values, dtype=np.uint64)
+    v = np.asarray(values)
+    if v.dtype != np.int64:
+        v = v.astype(np.uint64)
     sizes = np.ones(v.shape, dtype=np.int64)
-    for k in range(1, MAX_VARINT_BYTES):
-        sizes += v >= np.uint64(1 << (7 * k))
+    for step in _VARINT_STEPS:
+        sizes += v >= step
     return sizes
 
 
 def _varint_encode(values: np.ndarray) -> bytes:
-    v = np.asarray(values, dtype=np.uint64)
+    v = np.asarray(values)
     if v.size == 0:
         return b""
     if int(v.max()) >= 1 << 35:
         raise ValueError("varint value out of range")
+    v = v.astype(np.int64, copy=False)
     sizes = varint_sizes(v)
-    offsets = np.cumsum(sizes) - sizes
-    out = np.empty(int(sizes.sum()), dtype=np.uint8)
-    for k in range(int(sizes.max())):
-        sel = sizes > k
-        chunk = (v[sel] >> np.uint64(7 * k)) & np.uint64(0x7F)
-        more = (sizes[sel] > k + 1).astype(np.uint64) << np.uint64(7)
-        out[offsets[sel] + k] = (chunk | more).astype(np.uint8)
+    ends = np.cumsum(sizes)
+    starts = ends - sizes
+    out = np.empty(int(ends[-1]), dtype=np.uint8)
+    # Byte k of every value that has one: its k-th 7-bit group, the top bit set when
+    # more follow (all values have byte 0; few have the later ones).
+    out[starts] = (v & 0x7F) | ((sizes > 1) << 7)
+    sel = np.flatnonzero(sizes > 1)
+    k = 1
+    while sel.size:
+        more = sizes[sel] > k + 1
+        out[starts[sel] + k] = ((v[sel] >> (7 * k)) & 0x7F) | (more << 7)
+        sel = sel[more]
+        k += 1
     return out.tobytes()
 
 
@@ -165,6 +177,26 @@ def _sizes(idx: np.ndarray, n_cells: int) -> dict[Encoding, int]:
     }
 
 
+def _smallest(idx: np.ndarray, n_cells: int) -> Encoding:
+    """The encoding :func:`_sizes` makes smallest (ties to the lower tag), sizing a
+    varint list only when its lower bound (a byte per value) does not settle it."""
+    bitmap = 1 + bitmap_bytes(n_cells)
+    n_runs = 1 + int(np.count_nonzero(np.diff(idx) != 1)) if idx.size else 0
+    low = {Encoding.INDICES: 1 + idx.size, Encoding.RUNS: 1 + 2 * n_runs}
+    exact = {Encoding.BITMAP: bitmap}
+    # Size the list with the lower bound first: often that alone beats the other's bound.
+    for enc in sorted(low, key=lambda e: (low[e], int(e))):
+        if min(exact.values()) < low[enc] or (
+            min(exact.values()) == low[enc] and min(exact, key=int) < enc
+        ):
+            continue  # cannot win
+        if enc == Encoding.INDICES:
+            exact[enc] = 1 + int(varint_sizes(_index_values(idx)).sum())
+        else:
+            exact[enc] = 1 + int(varint_sizes(_run_values(*_runs(idx))).sum())
+    return min(exact, key=lambda e: (exact[e], int(e)))
+
+
 def encode_closures(
     cell_indices: ArrayLike, n_cells: int, encoding: Encoding | None = None
 ) -> bytes:
@@ -198,8 +230,7 @@ def encode_closures(
         raise ValueError(f"n_cells must be in (0, {MAX_CELLS}], got {n_cells}.")
     idx = sorted_cell_indices(cell_indices, n_cells)
     if encoding is None:
-        sizes = _sizes(idx, n_cells)
-        best = min(sizes, key=lambda enc: (sizes[enc], int(enc)))
+        best = _smallest(idx, n_cells)
     else:
         best = Encoding(encoding)
     if best == Encoding.INDICES:
