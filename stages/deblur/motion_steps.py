@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .operator import sample_trajectories
+from .operator import trajectory_sum
 from .problem import Observations, laplacian
 
 
@@ -41,15 +41,12 @@ def motion_terms(
     bx = np.zeros((h, wd))
     by = np.zeros((h, wd))
 
+    grads = np.concatenate([gxs, gys], axis=2)  # (H, W, 2C): both sampled on one path
+
     def accumulate(times, weights, rr, ww):
-        jx = np.zeros((h, wd, c))
-        jy = np.zeros((h, wd, c))
-        wt = weights * times.reshape(-1, 1, 1)
-        for ch in range(c):
-            sx = sample_trajectories(gxs[..., ch], vel, times)
-            sy = sample_trajectories(gys[..., ch], vel, times)
-            jx[..., ch] = -(wt * sx).sum(axis=0)
-            jy[..., ch] = -(wt * sy).sum(axis=0)
+        j = trajectory_sum(grads, vel, times, weights * times.reshape(-1, 1, 1))
+        jx = -j[..., :c].astype(np.float64)
+        jy = -j[..., c:].astype(np.float64)
         hxx[...] += (ww * jx * jx).sum(axis=2)
         hxy[...] += (ww * jx * jy).sum(axis=2)
         hyy[...] += (ww * jy * jy).sum(axis=2)

@@ -397,27 +397,47 @@ def apply_adjoint(A: sp.csr_matrix, image: np.ndarray) -> np.ndarray:
     return np.asarray(A.T @ image.reshape(h * w, c)).reshape(h, w, c)
 
 
-def sample_trajectories(image: np.ndarray, velocity: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """Matrix-free gather: ``image(x - u(x) t)`` for each time in ``times``.
+#: Channels one ``cv2.remap`` call interpolates exactly: with more, OpenCV quantises the
+#: float maps to 1/32 pixel (measured: errors of 2.6e-2 on values in [0, 1]).
+REMAP_MAX_CHANNELS = 4
+
+
+def trajectory_sum(
+    images: np.ndarray, velocity: np.ndarray, times: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
+    """Matrix-free weighted gather: ``sum_s weights[s] * images(x - u(x) t_s)``.
 
     Parameters
     ----------
-    image : ndarray of shape (H, W)
+    images : ndarray of shape (H, W, K)
+        Sampled together (one pair of maps per time for all ``K``).
     velocity : ndarray of shape (H, W, 2), px/s
     times : ndarray of shape (S,), seconds
+    weights : ndarray broadcastable to (S, H, W)
 
     Returns
     -------
-    ndarray of shape (S, H, W), float32 (bilinear, border reflected)
+    ndarray of shape (H, W, K), float32 (bilinear, border reflected); nothing of size
+    ``S x H x W`` is held.
     """
     import cv2
 
-    h, w = image.shape
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    out = np.empty((len(times), h, w), np.float32)
-    img = np.ascontiguousarray(image, np.float32)
+    h, w, k = images.shape
+    xx = np.arange(w, dtype=np.float32)[None, :]
+    yy = np.arange(h, dtype=np.float32)[:, None]
+    vx = np.ascontiguousarray(velocity[..., 0], np.float32)
+    vy = np.ascontiguousarray(velocity[..., 1], np.float32)
+    groups = [
+        np.ascontiguousarray(images[..., g : g + REMAP_MAX_CHANNELS], np.float32)
+        for g in range(0, k, REMAP_MAX_CHANNELS)
+    ]
+    wts = np.broadcast_to(np.asarray(weights, np.float32), (len(times), h, w))
+    out = np.zeros((h, w, k), np.float32)
     for i, t in enumerate(times):
-        mx = xx - velocity[..., 0] * np.float32(t)
-        my = yy - velocity[..., 1] * np.float32(t)
-        out[i] = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        mx = xx - vx * np.float32(t)
+        my = yy - vy * np.float32(t)
+        wt = wts[i][..., None]
+        for g, img in zip(range(0, k, REMAP_MAX_CHANNELS), groups, strict=True):
+            got = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+            out[..., g : g + img.shape[2]] += wt * got.reshape(h, w, -1)
     return out
