@@ -225,9 +225,15 @@ def test_rig_validation_speaks_sentences():
         RigParams.from_dict({"frame_s": 1.0, "warp_factor": 9})
 
 
-def test_fast_controller_matches_a_plain_per_cell_max(rng):
+@pytest.mark.parametrize("banded", [False, True])
+def test_fast_controller_matches_a_plain_per_cell_max(rng, banded, monkeypatch):
     """The incremental controller decides exactly like the textbook rule: close a cell
-    once the maximum running sum over its pixels reaches theta."""
+    once the maximum running sum over its pixels reaches theta (its scan on one thread,
+    and in the bands on threads that large frames get)."""
+    import stages.crossings
+
+    monkeypatch.setattr(stages.crossings, "BANDED_FROM_PIXELS", 0 if banded else 1 << 40)
+    monkeypatch.setattr(stages.crossings, "SCAN_THREADS", 2)
     rig = RigParams(
         sensor_size=(50, 40),
         lcos_cells=(17, 11),
@@ -235,6 +241,7 @@ def test_fast_controller_matches_a_plain_per_cell_max(rng):
     )
     cm = CellMap.for_rig(rig, (40, 50))
     ctrl = ClosureController(rig, cm)
+    assert len(ctrl._scan._bands) == (2 if banded else 1)
     rates = rng.random((40, 50)).astype(np.float32) ** 3 * rig.threshold_dn / 8
     sums = np.zeros((40, 50), np.float32)
     ref_close = np.full(cm.n_cells + 1, ClosureController.NEVER, np.int32)
