@@ -2,8 +2,8 @@
 find the pixels whose budget reached zero.
 
 The scan is three passes over memory (subtract, compare, find) and is bound by memory
-bandwidth, so a large frame is cut into bands scanned on two threads (numpy releases the
-GIL inside each pass); the hits are found a 64-bit word at a time, skipping the words with
+bandwidth, so a large frame is cut into bands scanned on two threads, the caller's and a
+pool's (numpy releases the GIL inside each pass); the hits are found a 64-bit word at a time, skipping the words with
 none, which is cheaper than ``np.flatnonzero`` over every byte while hits are sparse.
 """
 
@@ -28,7 +28,7 @@ def _pool() -> ThreadPoolExecutor:
     global _POOL
     with _POOL_LOCK:
         if _POOL is None:
-            _POOL = ThreadPoolExecutor(SCAN_THREADS, thread_name_prefix="vet-scan")
+            _POOL = ThreadPoolExecutor(max(1, SCAN_THREADS - 1), thread_name_prefix="vet-scan")
         return _POOL
 
 
@@ -89,5 +89,7 @@ class CrossingScan:
             raise ValueError(f"frame has {flat.size} pixels, expected {self.remaining.size}")
         if len(self._bands) == 1:
             return self._band(flat, *self._bands[0])
-        parts = list(_pool().map(lambda ab: self._band(flat, *ab), self._bands))
-        return np.concatenate(parts)
+        # The calling thread scans the first band itself (no hand-off to wait for).
+        rest = [_pool().submit(self._band, flat, *ab) for ab in self._bands[1:]]
+        first = self._band(flat, *self._bands[0])
+        return np.concatenate([first] + [job.result() for job in rest])
