@@ -177,24 +177,29 @@ def _sizes(idx: np.ndarray, n_cells: int) -> dict[Encoding, int]:
     }
 
 
-def _smallest(idx: np.ndarray, n_cells: int) -> Encoding:
-    """The encoding :func:`_sizes` makes smallest (ties to the lower tag), sizing a
-    varint list only when its lower bound (a byte per value) does not settle it."""
-    bitmap = 1 + bitmap_bytes(n_cells)
+def _list_values(idx: np.ndarray, enc: Encoding) -> np.ndarray:
+    """The varint values of the INDICES or RUNS encoding of ``idx``."""
+    return _index_values(idx) if enc == Encoding.INDICES else _run_values(*_runs(idx))
+
+
+def _smallest(idx: np.ndarray, n_cells: int) -> tuple[Encoding, np.ndarray | None]:
+    """The encoding :func:`_sizes` makes smallest (ties to the lower tag), with its varint
+    values when it is a list; a list is sized only when its lower bound (a byte per value)
+    does not settle the choice."""
     n_runs = 1 + int(np.count_nonzero(np.diff(idx) != 1)) if idx.size else 0
     low = {Encoding.INDICES: 1 + idx.size, Encoding.RUNS: 1 + 2 * n_runs}
-    exact = {Encoding.BITMAP: bitmap}
+    exact = {Encoding.BITMAP: 1 + bitmap_bytes(n_cells)}
+    values: dict[Encoding, np.ndarray] = {}
     # Size the list with the lower bound first: often that alone beats the other's bound.
     for enc in sorted(low, key=lambda e: (low[e], int(e))):
         if min(exact.values()) < low[enc] or (
             min(exact.values()) == low[enc] and min(exact, key=int) < enc
         ):
             continue  # cannot win
-        if enc == Encoding.INDICES:
-            exact[enc] = 1 + int(varint_sizes(_index_values(idx)).sum())
-        else:
-            exact[enc] = 1 + int(varint_sizes(_run_values(*_runs(idx))).sum())
-    return min(exact, key=lambda e: (exact[e], int(e)))
+        values[enc] = _list_values(idx, enc)
+        exact[enc] = 1 + int(varint_sizes(values[enc]).sum())
+    best = min(exact, key=lambda e: (exact[e], int(e)))
+    return best, values.get(best)
 
 
 def encode_closures(
@@ -230,13 +235,11 @@ def encode_closures(
         raise ValueError(f"n_cells must be in (0, {MAX_CELLS}], got {n_cells}.")
     idx = sorted_cell_indices(cell_indices, n_cells)
     if encoding is None:
-        best = _smallest(idx, n_cells)
+        best, values = _smallest(idx, n_cells)
     else:
-        best = Encoding(encoding)
-    if best == Encoding.INDICES:
-        body = _varint_encode(_index_values(idx))
-    elif best == Encoding.RUNS:
-        body = _varint_encode(_run_values(*_runs(idx)))
+        best, values = Encoding(encoding), None
+    if best != Encoding.BITMAP:
+        body = _varint_encode(_list_values(idx, best) if values is None else values)
     else:
         mask = np.zeros(n_cells, dtype=bool)
         mask[idx] = True
