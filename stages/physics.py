@@ -252,6 +252,11 @@ class CellMap:
         return per_cell[self.pixel_cell]
 
 
+#: A host step whose crossed pixels name more cells than this fraction of the grid finds
+#: them by marking the cells and scanning the marks; fewer, by sorting.
+MARK_CELLS_ABOVE = 1 / 64
+
+
 class ClosureController:
     """The host's threshold logic: accumulate measuring subframes, close cells.
 
@@ -312,6 +317,7 @@ class ClosureController:
             sentinel &= ~self._keep
         self._flat[sentinel] = self._RETIRED
         self._scan = CrossingScan(self._flat)
+        self._marks = np.zeros(cellmap.n_cells + 1, bool)  # (scratch: cells of one step)
 
     def step(self, frame_dn: np.ndarray, k: int) -> np.ndarray:
         """Add subframe ``k``; return indices of cells that crossed the threshold."""
@@ -324,9 +330,9 @@ class ClosureController:
 
     def _open_cells_of(self, pix: np.ndarray) -> np.ndarray:
         """Retire pixels ``pix`` (ascending) that crossed; return the open cells they
-        govern, sorted, duplicates dropped."""
+        govern (int64, ascending, each once)."""
         self._flat[pix] = self._RETIRED
-        new = self.cellmap.pixel_cell.reshape(-1)[pix].astype(np.int64)
+        new = self.cellmap.pixel_cell.reshape(-1)[pix]
         if self._extras is not None:
             starts, cells = self._extras
             sel = pix[self._keep[pix]]
@@ -334,10 +340,16 @@ class ClosureController:
                 counts = starts[sel + 1] - starts[sel]
                 first = np.repeat(starts[sel] - (np.cumsum(counts) - counts), counts)
                 new = np.concatenate([new, cells[first + np.arange(int(counts.sum()))]])
+        n = self.cellmap.n_cells
+        if new.size > MARK_CELLS_ABOVE * n:  # many: marked on the cells, found in one scan
+            self._marks[new] = True
+            out = np.flatnonzero(self._marks[:n])
+            self._marks[new] = False
+            return out[self.close_subframe[out] == self.NEVER]
         new = new[self.close_subframe[new] == self.NEVER]  # (the sentinel never closes)
         new = np.sort(new, kind="stable")  # (nearly sorted: pixels come in raster order)
         new = new[np.concatenate((new[:1] == new[:1], new[1:] != new[:-1]))]
-        return new[new < self.cellmap.n_cells]
+        return new[new < n].astype(np.int64)
 
     def open_pixels(self, j: int) -> np.ndarray:
         """Boolean (H, W): pixels whose cell is open during subframe ``j``."""

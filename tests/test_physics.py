@@ -226,11 +226,16 @@ def test_rig_validation_speaks_sentences():
 
 
 @pytest.mark.parametrize("banded", [False, True])
-def test_fast_controller_matches_a_plain_per_cell_max(rng, banded, monkeypatch):
+@pytest.mark.parametrize("marks", [False, True])
+def test_fast_controller_matches_a_plain_per_cell_max(rng, banded, marks, monkeypatch):
     """The incremental controller decides exactly like the textbook rule: close a cell
     once the maximum running sum over its pixels reaches theta (its scan on one thread,
-    and in the bands on threads that large frames get)."""
+    and in the bands on threads that large frames get; each step's cells found by sorting,
+    and by marking them as steps with many crossings do)."""
     import stages.crossings
+    import stages.physics
+
+    monkeypatch.setattr(stages.physics, "MARK_CELLS_ABOVE", 0.0 if marks else 2.0)
 
     monkeypatch.setattr(stages.crossings, "BANDED_FROM_PIXELS", 0 if banded else 1 << 40)
     monkeypatch.setattr(stages.crossings, "SCAN_THREADS", 2)
