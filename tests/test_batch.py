@@ -142,6 +142,17 @@ def test_probe_kind_reads_headers_only(tree):
     header_cut = tree / "cut.exr"
     header_cut.write_bytes((tree / "a.exr").read_bytes()[:40])
     assert probe_kind(header_cut) == UNREADABLE
+    # metadata whose header declares a terabyte: unreadable, nothing allocated for it
+    import io
+    import zipfile
+
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        head, {"descr": "|u1", "fortran_order": False, "shape": (1 << 40,)}
+    )
+    with zipfile.ZipFile(tree / "huge.npz", "w") as zf:
+        zf.writestr("__meta__.npy", head.getvalue() + b"x" * 16)
+    assert probe_kind(tree / "huge.npz") == UNREADABLE
 
 
 def test_output_stems_mirror_layout_and_resolve_collisions(tmp_path):

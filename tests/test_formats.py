@@ -393,3 +393,28 @@ def test_a_capture_read_without_its_truth_holds_everything_else(tmp_path, small_
     np.testing.assert_array_equal(bare.T, full.T)
     np.testing.assert_array_equal(bare.measure, full.measure)
     assert bare.rig == full.rig and bare.meta == full.meta
+
+
+def _npy_declaring(nbytes: int, data: bytes = b"x" * 16) -> bytes:
+    """A .npy stream whose header declares ``nbytes`` uint8 elements but holds ``data``."""
+    import io
+
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        head, {"descr": "|u1", "fortran_order": False, "shape": (nbytes,)}
+    )
+    return head.getvalue() + data
+
+
+def test_an_npy_header_declaring_more_data_than_its_member_holds_is_refused_unallocated():
+    """A member's header is untrusted: 1 TiB declared in a 16-byte member is refused
+    before any allocation (it would be a MemoryError, not this ValueError, after)."""
+    import io
+
+    from stages.formats.layered import read_npy
+
+    stream = _npy_declaring(1 << 40)
+    with pytest.raises(ValueError, match="declares 1099511627776 bytes of data, more than"):
+        read_npy(io.BytesIO(stream), len(stream))
+    small = _npy_declaring(16)
+    assert read_npy(io.BytesIO(small), len(small)).tobytes() == b"x" * 16

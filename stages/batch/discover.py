@@ -167,10 +167,11 @@ def _npz_kind(path: str | Path) -> str | None:
     with zipfile.ZipFile(path) as zf:
         if "__meta__.npy" not in zf.namelist():
             return None
-        if zf.getinfo("__meta__.npy").file_size > MAX_HEADER_BYTES:
+        info = zf.getinfo("__meta__.npy")
+        if info.file_size > MAX_HEADER_BYTES:
             raise ValueError("metadata too large")
-        with zf.open("__meta__.npy") as fp:
-            text = str(read_npy(fp))
+        with zf.open(info) as fp:
+            text = str(read_npy(fp, info.file_size))
     try:
         meta = parse_json(text, str(path))
     except FormatError:

@@ -163,13 +163,18 @@ def _npz_member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str):
     return tuple(int(n) for n in shape), dtype, header
 
 
-def read_npy(fp) -> np.ndarray:
+def read_npy(fp, max_bytes: int) -> np.ndarray:
     """The array of the .npy stream ``fp`` (a file or zip member), read into place; safe
-    on threads, unlike ``np.lib.format.read_array`` (:data:`_HEADER_LOCK`). ValueError on
-    Python objects (no pickle), EOFError on truncated data."""
+    on threads, unlike ``np.lib.format.read_array`` (:data:`_HEADER_LOCK`). ``max_bytes``
+    bounds the data its header may declare (the member's size), checked before anything
+    is allocated. ValueError on Python objects (no pickle) or a declared size over the
+    bound, EOFError on truncated data."""
     shape, fortran, dtype = _read_npy_header(fp)
     if dtype.hasobject:
         raise ValueError("it holds Python objects (pickle); refusing to load")
+    declared = math.prod(shape) * dtype.itemsize
+    if declared > max_bytes:
+        raise ValueError(f"its header declares {declared} bytes of data, more than its {max_bytes}")
     arr = np.empty(shape, dtype, order="F" if fortran else "C")
     view = memoryview(arr.reshape(-1, order="A").view(np.uint8))
     got = 0
@@ -185,7 +190,7 @@ def _npz_array(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str) -> np.ndar
     """One .npy member's array (its header checked by :func:`_npz_member_header`)."""
     try:
         with zf.open(info) as fp:
-            return read_npy(fp)
+            return read_npy(fp, info.file_size)
     except _NPY_ERRORS as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise FormatError(f"{what}: corrupt .npz member {info.filename!r} ({first})") from None
