@@ -417,8 +417,8 @@ def trajectory_sum(
 
     Returns
     -------
-    ndarray of shape (H, W, K), float32 (bilinear, border reflected); nothing of size
-    ``S x H x W`` is held.
+    ndarray of shape (H, W, K), float32 (bilinear, border reflected); the samples are
+    summed as they are taken (no ``S x H x W x K`` array is held).
     """
     import cv2
 
@@ -431,12 +431,12 @@ def trajectory_sum(
         np.ascontiguousarray(images[..., g : g + REMAP_MAX_CHANNELS], np.float32)
         for g in range(0, k, REMAP_MAX_CHANNELS)
     ]
-    wts = np.broadcast_to(np.asarray(weights, np.float32), (len(times), h, w))
+    wts = np.broadcast_to(weights, (len(times), h, w))
     out = np.zeros((h, w, k), np.float32)
     for i, t in enumerate(times):
         mx = xx - vx * np.float32(t)
         my = yy - vy * np.float32(t)
-        wt = wts[i][..., None]
+        wt = wts[i].astype(np.float32)[..., None]
         for g, img in zip(range(0, k, REMAP_MAX_CHANNELS), groups, strict=True):
             got = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
             out[..., g : g + img.shape[2]] += wt * got.reshape(h, w, -1)
