@@ -44,3 +44,27 @@ def test_scan_takes_integer_frames_and_refuses_a_wrong_size():
         scan(np.zeros(99, np.float32))
     with pytest.raises(ValueError, match="1-D float32"):
         CrossingScan(np.zeros((2, 2), np.float32))
+
+
+def _scan_in_child(queue):
+    remaining = np.full(1024, 1, np.float32)
+    queue.put(CrossingScan(remaining, banded=True)(np.ones(1024, np.float32)).size)
+
+
+def test_a_forked_child_scans_in_bands_with_a_pool_of_its_own():
+    """A child forked after the parent's scan pool started has none of its threads: it
+    starts its own instead of waiting forever on the parent's."""
+    import multiprocessing
+
+    remaining = np.full(1024, 5, np.float32)
+    assert CrossingScan(remaining, banded=True)(np.ones(1024, np.float32)).size == 0
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_scan_in_child, args=(queue,))
+    child.start()
+    try:
+        assert queue.get(timeout=30) == 1024
+    finally:
+        child.join(5)
+        if child.is_alive():
+            child.kill()
