@@ -160,6 +160,7 @@ def _check_all_encodings(idx: np.ndarray, n: int) -> None:
         np.testing.assert_array_equal(decode_closures(payload, n), expected)
     chosen = encode_closures(idx, n)
     assert len(chosen) == min(sizes.values())
+    assert chosen[0] == min(sizes, key=lambda e: (sizes[e], int(e)))  # ties: the lower tag
     np.testing.assert_array_equal(decode_closures(chosen, n), expected)
 
 
