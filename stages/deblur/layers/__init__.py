@@ -36,9 +36,16 @@ two numbers, so it is far more accurate where the model holds. The estimate
    :func:`.alignment.track_score`); points without clear evidence
    (:data:`EVIDENCE_NATS`) are tested again over wider neighbourhoods
    (:data:`POOL_SIGMAS`, the threshold falling with the noise of the pooled mean), so
-   that a dark, faintly textured moving region is found; points clear at no scale take a
-   default layer (the still one if the scene has clearly still parts, else the moving
-   layer most points clearly follow: a global motion); the label map is then cleaned
+   that a dark, faintly textured moving region is found. With one moving layer, the
+   points clear at no scale are labelled together by a minimum cut (:mod:`.potts`):
+   each takes the layer its own evidence favours where a region's evidence in sum
+   outweighs the boundary that makes (:data:`.labels.BOUNDARY_NATS` per neighbour
+   pair), a default layer favoured by :data:`.labels.DEFAULT_PRIOR_NATS` a point: the
+   still one if the scene has clearly still parts, else the moving layer most points
+   clearly follow (a global motion). A corner of an object whose content holds little
+   evidence on each point but a clear sum is then the object's. With several moving
+   layers the points clear at no scale take the default layer (their misfit is what
+   tells the model check that a field is no set of layers). The label map is then cleaned
    with a median filter. A layer slower than :data:`MIN_SPEED_PX_S` is still; one that
    keeps under 1% of the points is merged into the largest.
    Limitation: the evidence is in the measuring bins only (a pixel exposed the whole

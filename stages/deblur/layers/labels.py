@@ -8,6 +8,7 @@ import numpy as np
 
 from .alignment import track_score
 from .bins import log_frames
+from .potts import complete_labels
 
 log = logging.getLogger(__name__)
 
@@ -23,6 +24,17 @@ EVIDENCE_NATS = 3.0
 POOL_SIGMAS = (2.0, 4.0, 8.0, 16.0)
 #: Per-point evidence (nats) is clipped at this for the wider neighbourhoods.
 POOL_CLIP_NATS = 2.0
+#: Share of the points a layer must keep, else it is merged into the largest.
+MIN_SHARE = 0.01
+#: Points clear at no scale are labelled together (:mod:`.potts`), each by its own
+#: evidence (unclipped: clipping would bias it, as its negative tail is the longer one
+#: where an occlusion makes both hypotheses misfit), with this cost (nats) for each pair
+#: of 4-neighbours in different layers ...
+BOUNDARY_NATS = 2.0
+#: ... and a prior (nats per point) for the default layer: flat, noisy content scores a
+#: little evidence for any motion (up to about this much on average, on still captures of
+#: ../shared's scenes), which must not move it.
+DEFAULT_PRIOR_NATS = 0.2
 #: Full-resolution pixels about a working-grid layer boundary whose labels are decided
 #: again from the full-resolution bins.
 BOUNDARY_BAND_PX = 8
@@ -49,9 +61,9 @@ def assign_labels(
     # ~4 pi sigma^2 points): weak but consistent evidence (a dark, faintly textured
     # moving region) decides at a coarser scale. Each point's evidence is clipped at
     # +-POOL_CLIP_NATS for the wider tests, so that a few strongly textured points
-    # cannot carry a flat neighbourhood. Points clear at no scale take a default layer:
-    # the still one where the scene has clearly still parts, else (a global motion)
-    # the moving layer most points clearly follow.
+    # cannot carry a flat neighbourhood. Points clear at no scale favour a default layer:
+    # the still one where the scene has clearly still parts, else (a global motion) the
+    # moving layer most points clearly follow.
     raw = [track_score(lv, slv, v, centres) for v in cands[1:]]
     zero = np.zeros((hw, ww), np.float32)
 
@@ -72,9 +84,22 @@ def assign_labels(
         label[take] = best[take]
     wider = int((label >= 0).sum() - counts.sum())
     default = 0 if counts[0] >= 0.05 * max(counts.sum(), 1.0) else int(np.argmax(counts))
-    llr0[default] += EVIDENCE_NATS
-    rest = label < 0
-    label[rest] = np.argmax(llr0, axis=0)[rest]
+    if len(cands) == 2:
+        # One moving layer: the rest are labelled together, each taking the layer its
+        # evidence favours where a region's evidence in sum outweighs the boundary that
+        # labelling makes; an undecided pocket takes the layer about it; flat content
+        # with no evidence the default layer. (With more, undecided points between
+        # moving layers are where a field is not layered, a rotation's, and the model
+        # check must see them misfit: they take the default layer.)
+        cost = np.stack([zero, -raw[0]])
+        cost[default] -= np.float32(DEFAULT_PRIOR_NATS)
+        if counts[1 - default] < MIN_SHARE * label.size:  # (a layer that is not kept, below)
+            cost[1 - default] = np.float32(1e3)
+        label = complete_labels(label, cost, BOUNDARY_NATS)
+    else:
+        llr0[default] += EVIDENCE_NATS
+        rest = label < 0
+        label[rest] = np.argmax(llr0, axis=0)[rest]
     log.debug(
         "layers: clear evidence counts %s, %d points decided at wider scales, default layer %d",
         counts.tolist(),
@@ -86,7 +111,7 @@ def assign_labels(
     shares = np.bincount(label.ravel(), minlength=len(cands)) / label.size
     big = int(np.argmax(shares))
     for k in range(len(cands)):
-        if 0 < shares[k] < 0.01:
+        if 0 < shares[k] < MIN_SHARE:
             label[label == k] = big
     return label
 
