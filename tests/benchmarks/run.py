@@ -1,7 +1,7 @@
 """`make bench`: run every benchmark module (tests/benchmarks/bench_*.py) and print figures.
 
 Usage: python -m tests.benchmarks.run [NAME ...]   (NAME: a bench_NAME.py module here:
-batch, capture, deblur, foundation, fusion, hostile, layers)
+batch, capture, deblur, foundation, fusion, hostile, layers, ...)
 
 Each module has a ``main()`` that prints its own figures to stdout. Benchmarks report
 numbers; they never fail on a time (tests assert behaviour, not wall-clock times).
