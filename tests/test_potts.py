@@ -133,3 +133,14 @@ def test_a_region_an_object_sweeps_over_stays_still(monkeypatch):
     lv = np.zeros((4, h, w), np.float32)
     label = labels_mod.assign_labels(lv, lv, [np.zeros(2), np.array([40.0, 10.0])], np.arange(4.0))
     assert np.all(label[22:38, 50:60] == 0)  # (nearer the object, its pooled evidence)
+
+
+def test_costs_past_int32_capacities_are_scaled_and_the_cut_still_right():
+    """scipy's capacities are int32: a point that must not leave its layer at any price
+    (2^32 + 10 units at full scale, which int32 would wrap to 10) beside points that weigh
+    a few nats."""
+    u0 = np.array([0.0, 3.0, 3.0, 0.0])
+    u1 = np.array([((1 << 32) + 10) / CAPACITY_SCALE, 0.0, 0.0, 5.0])
+    p = np.array([0, 1, 2])
+    x = binary_cut(u0, u1, p, p + 1, np.full(3, 1.0))
+    assert x.tolist() == [False, True, True, False]

@@ -91,11 +91,12 @@ def assign_labels(
         # with no evidence the default layer. (With more, undecided points between
         # moving layers are where a field is not layered, a rotation's, and the model
         # check must see them misfit: they take the default layer.)
-        cost = np.stack([zero, -raw[0]])
-        cost[default] -= np.float32(DEFAULT_PRIOR_NATS)
         if counts[1 - default] < MIN_SHARE * label.size:  # (a layer that is not kept, below)
-            cost[1 - default] = np.float32(1e3)
-        label = complete_labels(label, cost, BOUNDARY_NATS)
+            label[label < 0] = default
+        else:
+            cost = np.stack([zero, -raw[0]])
+            cost[default] -= np.float32(DEFAULT_PRIOR_NATS)
+            label = complete_labels(label, cost, BOUNDARY_NATS)
     else:
         llr0[default] += EVIDENCE_NATS
         rest = label < 0

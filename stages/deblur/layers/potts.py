@@ -31,6 +31,8 @@ from scipy.sparse.csgraph import breadth_first_order, maximum_flow
 CAPACITY_SCALE = 64
 #: Expansion sweeps over all layers, at most (more than two layers).
 SWEEPS = 3
+#: Largest flow a cut may carry (scipy's flows are int32).
+FLOW_LIMIT = (1 << 31) - 1
 
 
 def _neighbour_pairs(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
@@ -53,6 +55,13 @@ def binary_cut(
     to_one = np.rint((u1 - m) * CAPACITY_SCALE).astype(np.int64)  # s -> i: cut if x_i = 1
     to_zero = np.rint((u0 - m) * CAPACITY_SCALE).astype(np.int64)  # i -> t: cut if x_i = 0
     cw = np.rint(np.asarray(w, np.float64) * CAPACITY_SCALE).astype(np.int64)
+    # scipy's capacities and flows are int32: all are scaled down where their sum (which
+    # bounds every capacity and flow) would pass that.
+    total = int(to_one.sum()) + int(to_zero.sum()) + int(cw.sum())
+    if total > FLOW_LIMIT:
+        to_one, to_zero, cw = (
+            np.floor(c * (FLOW_LIMIT / total)).astype(np.int64) for c in (to_one, to_zero, cw)
+        )
     nodes = np.arange(n)
     rows = np.concatenate([np.full(n, s), nodes, p, q])
     cols = np.concatenate([nodes, np.full(n, t), q, p])
