@@ -144,3 +144,11 @@ def test_costs_past_int32_capacities_are_scaled_and_the_cut_still_right():
     p = np.array([0, 1, 2])
     x = binary_cut(u0, u1, p, p + 1, np.full(3, 1.0))
     assert x.tolist() == [False, True, True, False]
+
+
+def test_a_tie_keeps_the_current_layer():
+    """With nothing to choose between the layers, no point changes (two layers start at
+    0; more at the least costly, here the first)."""
+    for k in (2, 3):
+        out = complete_labels(np.full((4, 5), -1, np.int32), np.zeros((k, 4, 5), np.float32), 2.0)
+        assert np.all(out == 0)

@@ -48,7 +48,7 @@ def binary_cut(
 ) -> np.ndarray:
     """The x in {0, 1}^n that minimises ``sum u0[x == 0] + sum u1[x == 1] + sum_e w_e
     [x_p[e] == 0 and x_q[e] == 1]`` (``u0, u1`` (n,), ``w`` (m,) >= 0 for the pairs
-    ``p, q`` (m,) of node indices); returns x as (n,) bool."""
+    ``p, q`` (m,) of node indices); returns x as (n,) bool, 0 wherever a tie allows."""
     n = len(u0)
     s, t = n, n + 1
     m = np.minimum(u0, u1)
@@ -76,9 +76,11 @@ def binary_cut(
     residual = (graph - flow).tocsr()
     residual.data = np.maximum(residual.data, 0)
     residual.eliminate_zeros()
-    reached = breadth_first_order(residual, s, directed=True, return_predecessors=False)
-    x = np.ones(n, bool)
-    x[reached[reached < n]] = False  # (the source's side: 0)
+    # The sink's side: the nodes that still reach it. (Of the minimum cuts, the one with
+    # the fewest nodes at 1: a tie keeps 0.)
+    reaching = breadth_first_order(residual.T.tocsr(), t, directed=True, return_predecessors=False)
+    x = np.zeros(n, bool)
+    x[reaching[reaching < n]] = True
     return x
 
 
