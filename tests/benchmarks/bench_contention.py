@@ -1,5 +1,5 @@
-"""Benchmark: how much faster two processes finish memory-bound sparse products than one,
-on this machine.
+"""Benchmark: how much faster two processes finish a tile solve's sparse products than
+one, on this machine.
 
 A tile's image solve is sparse matrix-vector products (``make bench``'s deblur profile),
 bound by memory bandwidth. Two Dask workers each solve their own tiles: their speedup
@@ -9,8 +9,9 @@ banded CSR matrix shaped like a 512 px tile's blur operator: rows of ``NNZ_PER_R
 non-zeros, float32) once in one process, then the same work split over two processes
 started together, each single-threaded, and prints the times and their ratio (2.0 would
 be perfect scaling; what the cores share, memory bandwidth above all, takes it lower).
-Where this is near 2 and two workers on one frame are not, what they lack is vet's (the
-work that runs once, in the client, and how the tiles are shared).
+``bench_tiles`` times a whole tile solve alone and beside another: where the products
+scale here and the solves do not, what contends is the rest of the solve (its
+element-wise passes over the images and their temporaries), not the products.
 
 Run: ``.venv/bin/python -m tests.benchmarks.bench_contention``.
 """
