@@ -1,7 +1,7 @@
 """Benchmark: how much faster two processes finish a tile solve's sparse products than
 one, on this machine.
 
-A tile's image solve is sparse matrix-vector products (``make bench``'s deblur profile),
+A tile's image solve is mostly sparse matrix-vector products (the deblur's profile),
 bound by memory bandwidth. Two Dask workers each solve their own tiles: their speedup
 over one worker is at most what two processes running such products side by side give
 over one running them alone. This runs a fixed amount of work (``ROUNDS`` products of a
