@@ -63,16 +63,15 @@ def binary_cut(
             np.floor(c * (FLOW_LIMIT / total)).astype(np.int64) for c in (to_one, to_zero, cw)
         )
     nodes = np.arange(n)
-    rows = np.concatenate([np.full(n, s), nodes, p, q])
-    cols = np.concatenate([nodes, np.full(n, t), q, p])
-    caps = np.concatenate([to_one, to_zero, cw, np.zeros_like(cw)])
+    rows = np.concatenate([np.full(n, s), nodes, p])
+    cols = np.concatenate([nodes, np.full(n, t), q])
+    caps = np.concatenate([to_one, to_zero, cw])
     keep = caps > 0
-    keep[2 * n + len(cw) :] = keep[2 * n : 2 * n + len(cw)]  # (a reverse edge per pair edge)
     graph = sp.csr_matrix(
         (caps[keep].astype(np.int32), (rows[keep], cols[keep])), shape=(n + 2, n + 2)
     )
-    graph.sum_duplicates()
     flow = maximum_flow(graph, s, t, method="dinic").flow
+    # (the flow is antisymmetric: its reverse entries give the reverse residuals)
     residual = (graph - flow).tocsr()
     residual.data = np.maximum(residual.data, 0)
     residual.eliminate_zeros()
