@@ -82,6 +82,5 @@ if __name__ == "__main__":
     seeds = tuple(int(s) for s in option_value(args, "--seeds", "0,1,2,3").split(","))
     if "--seeds" in args:
         del args[args.index("--seeds") : args.index("--seeds") + 2]
-    rest = args
-    dims = parse_size(rest.pop(0)) if rest and "x" in rest[0] else (320, 240)
-    main(dims, rest[0] if rest else None, seeds)
+    dims = parse_size(args.pop(0)) if args and "x" in args[0] else (320, 240)
+    main(dims, args[0] if args else None, seeds)
