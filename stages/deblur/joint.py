@@ -92,11 +92,14 @@ from .problem import (
     pcg,
     smooth_normal,
 )
-from .stacked import StackedOperator, diag_normal, product
+from .stacked import StackedOperator, diag_normal, product, row_blocks
 from .still_pixels import fuse_still, moving_support
 from .stream import StreamTerm, layer_motion, stream_term
 
 log = logging.getLogger(__name__)
+
+#: Blocks of rows the VET image's normal product is made in (:func:`solve_image`).
+VET_ROW_BLOCKS = 2
 
 
 def _smooth_weights(
@@ -213,17 +216,37 @@ def solve_image(
     diag += anchor_w
     anchored = np.flatnonzero(np.any(anchor_w != 0, axis=1))  # (few: pixels only bounded)
 
-    def vet_column(xc: np.ndarray, k: int) -> np.ndarray:
-        y = A @ xc
-        y *= w[:, k]
-        return AT @ y
+    threads = solve_threads()
+    split = getattr(A, "convolution", None)
+    if split is not None:
+        # The VET image's operator as convolutions (stages.deblur.convolution), with
+        # each channel's weights as they take them, for the whole solve.
+        blocks = [None]
+        split_w = [split.weights(w[:, k]) for k in range(c)]
+    else:
+        # The VET image's rows in blocks (views of A's arrays), so that its normal
+        # product, the largest, is shared between threads like the bins' groups (as many
+        # blocks whatever the threads: the pieces sum in one order, to the same image).
+        blocks = row_blocks(A, VET_ROW_BLOCKS)
+
+    def vet_column(xc: np.ndarray, k: int, b: int) -> np.ndarray:
+        if split is not None:
+            out = np.zeros((h, wd), np.float32)
+            split.normal(xc.reshape(h, wd), split_w[k], out)
+            return out.reshape(-1)
+        Mb, MbT, r0, r1 = blocks[b]
+        y = Mb @ xc
+        y *= w[r0:r1, k]
+        return MbT @ y
 
     def apply_h(x: np.ndarray) -> np.ndarray:
         # The data terms' products in pieces (the VET image's and each group of bins',
         # channel by channel) on the process's threads (scipy's sparse products release
         # the GIL); inline in a worker limited to one.
         xs = [np.ascontiguousarray(x[:, k], np.float32) for k in range(c)]
-        jobs = [(k, pool.submit(vet_column, xs[k], k)) for k in range(c)]
+        jobs = [
+            (k, pool.submit(vet_column, xs[k], k, b)) for k in range(c) for b in range(len(blocks))
+        ]
         if Ab is not None:
             jobs += [
                 (k, pool.submit(Ab.normal_column, g, xs[k], wb, k))
@@ -241,7 +264,6 @@ def solve_image(
         out += data.T
         return out
 
-    threads = solve_threads()
     with ThreadPoolExecutor(threads) if threads > 1 else nullcontext(_Inline()) as pool:
         return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
 

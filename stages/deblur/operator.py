@@ -246,11 +246,15 @@ def blur_matrix(
             del parts
             if not g_parts:
                 g_parts = [np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, np.int64)]
-            return expand_stencils(
+            M = expand_stencils(
                 n,
                 (g_rows, g_parts[2], g_parts[0], g_parts[1]),
                 (s_rows, s_gid, reps, r_counts, r_cols, r_vals),
             )
+            # (What the matrix is made of, for its split into convolutions:
+            # stages.deblur.convolution.)
+            M.stencils = Stencils(s_rows, s_gid, reps, r_counts, r_cols, r_vals)
+            return M
     # Row by row, in chunks of pixels. The index and value arrays grow geometrically, a
     # few large blocks (not one small part per chunk kept alive among the chunks'
     # temporaries, which fragments the heap). (Column indices are below n: int32 for any
@@ -313,6 +317,21 @@ def _row_entries(pix: np.ndarray, wins: list, motion: tuple, h: int, w: int, tie
     else:
         out = (np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(m, np.int64))
     return (*out, tie) if ties else out
+
+
+@dataclass(frozen=True)
+class Stencils:
+    """Rows of a blur matrix that are a representative row shifted with their pixel (see
+    :func:`stages.deblur.assembly.expand_stencils`): ``rows`` (S,) sorted, the ``group``
+    of each, the representative row of each group ``reps`` (G,), and the
+    representatives' entries (``counts`` per representative, ``cols``, ``vals``)."""
+
+    rows: np.ndarray
+    group: np.ndarray
+    reps: np.ndarray
+    counts: np.ndarray
+    cols: np.ndarray
+    vals: np.ndarray
 
 
 def _compact(v: np.ndarray) -> np.ndarray:

@@ -17,6 +17,7 @@ import scipy.sparse as sp
 
 from ..formats.capture import Capture
 from ..physics import bin_may_clip
+from .convolution import ConvolutionSplit
 from .operator import Window, blur_matrix, motion_layers, vet_windows
 from .stacked import StackedOperator
 from .stream import StreamTerm
@@ -330,6 +331,8 @@ def build_operators(
     # the bins' on two threads: numpy work that mostly releases the GIL, whose
     # temporaries are small.
     A = blur_matrix(velocity, obs.windows, step_px=step_px, min_dt=subframe_s, layers=layers)
+    # Its rows that are convolutions, applied as such in the solves (None: none are).
+    A.convolution = ConvolutionSplit.of(A, obs.shape[:2])
     if obs.yb is None:
         return A, None
     with ThreadPoolExecutor(max_workers=2) as pool:
@@ -344,7 +347,7 @@ def build_operators(
     if not mats:
         return A, None
     if obs.sampling is None:
-        return A, StackedOperator(mats)
+        return A, StackedOperator(mats, image_shape=obs.shape[:2])
     return A, StackedOperator([(obs.sampling @ M).tocsr() for M in mats], mats)
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from .convolution import ConvolutionSplit
+
 #: Mean non-zeros per row above which a product with several columns goes one column at
 #: a time (:func:`product`).
 LONG_ROWS_NNZ = 8
@@ -51,8 +53,20 @@ class StackedOperator:
     parts' float32; no (B N, C) float64 array is ever made.
     """
 
-    def __init__(self, parts: list[sp.csr_matrix], blurs: list[sp.csr_matrix] | None = None):
+    def __init__(
+        self,
+        parts: list[sp.csr_matrix],
+        blurs: list[sp.csr_matrix] | None = None,
+        image_shape: tuple[int, int] | None = None,
+    ):
         self.rows = parts[0].shape[0]
+        self.image_shape = image_shape
+        #: Each group's parts as shifted convolutions (:mod:`stages.deblur.convolution`)
+        #: where every part of the group splits (operators on an ``image_shape`` grid),
+        #: else None: :meth:`normal_column` then goes through them.
+        self.splits: list[list[ConvolutionSplit] | None] = []
+        #: The row weights as the splits take them, by (group, channel): (``w``, them).
+        self._split_weights: dict[tuple[int, int], tuple[np.ndarray, list]] = {}
         self.shape = (self.rows * len(parts), parts[0].shape[1])
         step = -(-len(parts) // min(BIN_GROUPS, len(parts)))
         #: (stack, its transposed view, first row, end row) of each group.
@@ -61,6 +75,15 @@ class StackedOperator:
             chunk = parts[b0 : b0 + step]
             M = chunk[0].tocsr() if len(chunk) == 1 else sp.vstack(chunk, format="csr")
             self.groups.append((M, M.T, b0 * self.rows, b0 * self.rows + M.shape[0]))
+            self.splits.append(chunk if image_shape is not None else None)
+        if image_shape is not None:  # (numpy's passes release the GIL: on the threads)
+            from ..cluster import in_order
+
+            found = list(in_order(lambda i: ConvolutionSplit.of(parts[i], image_shape), len(parts)))
+            for g, chunk in enumerate(self.splits):
+                b0 = g * step
+                split = found[b0 : b0 + len(chunk)]
+                self.splits[g] = None if any(p is None for p in split) else split
         #: The bins' blurs on the VET grid (the groups' stacks, or what a camera's
         #: sampling multiplies): where the motion moves an integration path.
         self.blurs = [g[0] for g in self.groups] if blurs is None else blurs
@@ -92,9 +115,30 @@ class StackedOperator:
         ``xc`` that channel of ``x`` (N,) contiguous float32, ``w`` (B N, C); (N,)
         float32. The pieces of all groups sum to :meth:`normal`'s column ``c``."""
         M, MT, r0, r1 = self.groups[g]
+        if self.splits[g] is not None:
+            return self._split_normal(g, xc, w, c)
         y = M @ xc
         y *= w[r0:r1, c]
         return MT @ y
+
+    def _split_normal(self, g: int, xc: np.ndarray, w: np.ndarray, c: int) -> np.ndarray:
+        """:meth:`normal_column` through group ``g``'s convolutions, their weights made
+        once for each ``w`` (a solve's)."""
+        split = self.splits[g]
+        _, _, r0, _ = self.groups[g]
+        held = self._split_weights.get((g, c))
+        if held is None or held[0] is not w:
+            n = self.shape[1]
+            weights = [
+                part.weights(w[r0 + i * n : r0 + (i + 1) * n, c]) for i, part in enumerate(split)
+            ]
+            held = (w, weights)
+            self._split_weights[(g, c)] = held
+        out = np.zeros(self.image_shape, np.float32)
+        x = xc.reshape(self.image_shape)
+        for part, weights in zip(split, held[1], strict=True):
+            part.normal(x, weights, out)
+        return out.reshape(-1)
 
     def normal(self, x: np.ndarray, w: np.ndarray) -> np.ndarray:
         """``stack.T diag(w) stack @ x`` (``w`` of shape (B N, C)), float64 (N, C).
@@ -116,6 +160,21 @@ class StackedOperator:
             part = diag_normal(M, w[r0:r1])
             out = part if out is None else out + part
         return out
+
+
+def row_blocks(A: sp.csr_matrix, n: int) -> list[tuple[sp.csr_matrix, sp.spmatrix, int, int]]:
+    """``A`` (CSR) in ``n`` blocks of consecutive rows, each ``(block, its transposed
+    view, first row, end row)``; the blocks share ``A``'s value and index arrays."""
+    bounds = np.linspace(0, A.shape[0], max(1, n) + 1).round().astype(int)
+    out = []
+    for r0, r1 in zip(bounds[:-1], bounds[1:], strict=True):
+        p0, p1 = int(A.indptr[r0]), int(A.indptr[r1])
+        # (Set on an empty matrix: the constructor copies a view of a much larger array.)
+        B = sp.csr_matrix((int(r1 - r0), A.shape[1]), dtype=A.dtype)
+        B.data, B.indices = A.data[p0:p1], A.indices[p0:p1]
+        B.indptr = (A.indptr[r0 : r1 + 1] - p0).astype(A.indptr.dtype)
+        out.append((B, B.T, int(r0), int(r1)))
+    return out
 
 
 #: Rows per block of :func:`diag_normal` (bounds its copy of the squared values).

@@ -1,0 +1,290 @@
+"""A sparse image operator split into small shifted convolutions and the rows they miss.
+
+A measuring bin's blur operator (:func:`stages.deblur.operator.blur_matrix` over a time
+window shared by every pixel) is, row by row, one of a few stencils: a layer's motion
+over the bin is the same for all its pixels, so the rows of the pixels inside a layer and
+away from the image border hold the same weights at the same offsets. Those rows are a
+shifted convolution: a small kernel (the stencil about its centre) applied by OpenCV's
+``filter2D`` and an integer shift applied by slicing, both passes of contiguous loads,
+where a sparse product gathers every non-zero through its column index. The other rows
+(the image border, where coordinates are reflected, and where layers meet) stay sparse.
+
+The split is exact: a row is taken by a kernel only where every one of its entries is
+that kernel's, at the same offset, and lies inside the image, so the convolution sums
+that row's terms (in float32, in another order). The adjoint is the correlation with the
+flipped kernel, shifted back, on the rows the kernel took, plus the other rows' transpose.
+
+Shapes: the operator ``M`` is (N, N) CSR for an image of (H, W) = N pixels (rows: observed
+pixels, columns: unknown pixels, both row-major); images are (H, W) float32.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.sparse as sp
+
+#: At most this many kernels per operator (a still background and a few moving layers).
+MAX_KERNELS = 4
+#: A kernel must take at least this share of the rows (else its rows stay sparse).
+MIN_KERNEL_SHARE = 0.05
+#: Rows whose stencils are tried as a kernel's, spread over the rows not yet taken.
+SEEDS = 8
+GOLDEN = (5**0.5 - 1) / 2
+#: Rows checked first for a seed's stencil (a rare one is not checked on every row).
+PROBE_ROWS = 512
+#: Largest kernel (rows x columns): OpenCV's ``filter2D`` goes through the DFT for larger
+#: ones, slower than the sparse rows (a long diagonal path stays sparse).
+MAX_KERNEL_AREA = 100
+#: An operator is split only where its kernels take at least this share of the rows
+#: that have entries.
+MIN_SPLIT_SHARE = 0.5
+
+
+def _span(shift: int, n: int) -> tuple[slice, slice]:
+    """(rows whose centre ``i + shift`` is inside ``n``, those centres) along one axis."""
+    lo, hi = max(0, -shift), n - max(0, shift)
+    return slice(lo, hi), slice(lo + shift, hi + shift)
+
+
+@dataclass
+class _Kernel:
+    """One stencil, ``out[i, j] = sum small[u, v] x[i + sy + u, j + sx + v]``: the
+    correlation of ``small`` (anchored at its corner) evaluated at the row's pixel moved
+    by ``shift``."""
+
+    small: np.ndarray  # (ky, kx) float32
+    shift: tuple[int, int]  # (sy, sx): the stencil's first row and column offsets
+    mask: np.ndarray  # (H, W) bool: the rows this kernel takes
+
+    def __post_init__(self) -> None:
+        ky, kx = self.small.shape
+        self.flipped = np.ascontiguousarray(self.small[::-1, ::-1])
+        self.anchor_flipped = (kx - 1, ky - 1)  # (OpenCV's (x, y))
+        #: The one weight of a one-tap stencil (a whole-pixel shift), else None.
+        self.tap = float(self.small[0, 0]) if self.small.size == 1 else None
+
+    def slices(self, h: int, w: int):
+        """((rows, columns) whose ``pixel + shift`` is inside, (those positions))."""
+        (ry, cy), (rx, cx) = _span(self.shift[0], h), _span(self.shift[1], w)
+        return (ry, rx), (cy, cx)
+
+    def correlate(self, x: np.ndarray) -> np.ndarray:
+        """``f[q] = sum small[u, v] x[q + (u, v)]`` (zero outside the image), (H, W)."""
+        return cv2.filter2D(x, -1, self.small, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
+
+    def spread(self, c: np.ndarray) -> np.ndarray:
+        """The adjoint of :meth:`correlate`: ``z[p] = sum small[d] c[p - d]``, (H, W)."""
+        return cv2.filter2D(
+            c, -1, self.flipped, anchor=self.anchor_flipped, borderType=cv2.BORDER_CONSTANT
+        )
+
+
+def _kernel_of(off: np.ndarray, val: np.ndarray, w: int):
+    """The stencil of flat column offsets ``off`` with values ``val`` on an image ``w``
+    pixels wide: (kernel, shift, dy, dx), or None where an offset is half the width or
+    more sideways (its 2-D reading would be ambiguous) or the kernel's area is over
+    :data:`MAX_KERNEL_AREA`."""
+    dy = np.round(off / w).astype(np.int64)
+    dx = off - dy * w
+    if np.abs(dx).max() * 2 >= w:
+        return None
+    sy, sx = int(dy.min()), int(dx.min())
+    ky, kx = int(dy.max()) - sy + 1, int(dx.max()) - sx + 1
+    if ky * kx > MAX_KERNEL_AREA:
+        return None
+    small = np.zeros((ky, kx), np.float32)
+    np.add.at(small, (dy - sy, dx - sx), val.astype(np.float32))
+    return small, (sy, sx), dy, dx
+
+
+def _taken(M: sp.csr_matrix, rows: np.ndarray, off: np.ndarray, val: np.ndarray) -> np.ndarray:
+    """Which of ``rows`` (each with ``len(off)`` entries) hold exactly ``val`` at column
+    offsets ``off`` from their own index, bool (len(rows),)."""
+    at = M.indptr[rows]
+    ok = np.ones(rows.size, bool)
+    for e in range(off.size):
+        ent = at + e if e else at
+        ok &= M.indices[ent] == rows + M.indices.dtype.type(off[e])
+        ok &= M.data[ent] == val[e]
+    return ok
+
+
+def _inside(dy: np.ndarray, dx: np.ndarray, rows: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Which of ``rows`` keep every offset (dy, dx) inside the (h, w) image, bool."""
+    i, j = np.divmod(rows, w)
+    return (i >= -dy.min()) & (i < h - dy.max()) & (j >= -dx.min()) & (j < w - dx.max())
+
+
+def _best_seed(M: sp.csr_matrix, open_rows: np.ndarray, nnz: np.ndarray, h: int, w: int):
+    """Of :data:`SEEDS` rows spread over ``open_rows``, the one whose stencil the most
+    of :data:`PROBE_ROWS` open rows, evenly spread, share: ((small kernel, shift, offsets,
+    values, dy, dx), the open rows it would take at that share), or None."""
+    best = None
+    probe = open_rows[:: max(1, open_rows.size // PROBE_ROWS)]
+    # (Spread by the golden ratio, not evenly: even steps fall on one image column.)
+    picks = np.unique((np.arange(1, SEEDS + 1) * GOLDEN % 1.0 * open_rows.size).astype(int))
+    for seed in open_rows[picks]:
+        s0, s1 = M.indptr[seed], M.indptr[seed + 1]
+        off, val = M.indices[s0:s1].astype(np.int64) - int(seed), M.data[s0:s1]
+        found = _kernel_of(off, val, w)
+        if found is None:
+            continue
+        small, shift, dy, dx = found
+        cand = probe[(nnz[probe] == off.size) & _inside(dy, dx, probe, h, w)]
+        count = np.count_nonzero(_taken(M, cand, off, val)) * open_rows.size / probe.size
+        if best is None or count > best[1]:
+            best = ((small, shift, off, val, dy, dx), count)
+    return best
+
+
+class ConvolutionSplit:
+    """``M`` as ``sum_k diag(m_k) K_k + R``: shifted convolutions ``K_k`` on the rows of
+    masks ``m_k`` and ``R``, the rows no kernel takes (CSR). Build it with :meth:`of`."""
+
+    def __init__(self, shape: tuple[int, int], kernels: list[_Kernel], rest: np.ndarray, M):
+        self.shape = shape
+        self.kernels = kernels
+        #: The rows no kernel takes (rows with no entries left out), and their matrix
+        #: restricted to the columns it touches (``cols``).
+        self.rest = rest
+        R = M[rest]
+        used = np.bincount(R.indices, minlength=M.shape[1]) > 0
+        self.cols = np.flatnonzero(used)
+        at = np.cumsum(used, dtype=R.indices.dtype) - 1
+        R = sp.csr_matrix((R.data, at[R.indices], R.indptr), shape=(rest.size, self.cols.size))
+        self.R, self.RT = R, R.T
+
+    @classmethod
+    def of(cls, M: sp.csr_matrix, shape: tuple[int, int]) -> ConvolutionSplit | None:
+        """The split of ``M`` (N, N) CSR, canonical (sorted indices, no duplicates), for
+        an image of ``shape`` (H, W); None where its kernels take under
+        :data:`MIN_SPLIT_SHARE` of the rows that have entries."""
+        h, w = shape
+        n = h * w
+        if M.shape != (n, n) or n == 0:
+            return None
+        stencils = getattr(M, "stencils", None)
+        if stencils is not None:
+            return cls._of_stencils(M, stencils, shape)
+        if not M.has_canonical_format:
+            return None
+        nnz = np.diff(M.indptr)
+        label = np.where(nnz > 0, -1, -2).astype(np.int8)  # -1: not taken (yet)
+        kernels: list[_Kernel] = []
+        while len(kernels) < MAX_KERNELS:
+            open_rows = np.flatnonzero(label == -1).astype(np.int32)
+            if open_rows.size < MIN_KERNEL_SHARE * n:
+                break
+            found = _best_seed(M, open_rows, nnz, h, w)
+            if found is None or found[1] < MIN_KERNEL_SHARE * n:
+                break  # (no stencil common enough: the rest stays sparse)
+            (small, shift, off, val, dy, dx), _ = found
+            rows = open_rows[(nnz[open_rows] == off.size) & _inside(dy, dx, open_rows, h, w)]
+            rows = rows[_taken(M, rows, off, val)]
+            if rows.size < MIN_KERNEL_SHARE * n:
+                break
+            label[rows] = len(kernels)
+            kernels.append(_Kernel(small, shift, (label == len(kernels)).reshape(h, w)))
+        taken = int(np.count_nonzero(label >= 0))
+        if not kernels or taken < MIN_SPLIT_SHARE * np.count_nonzero(nnz):
+            return None
+        return cls(shape, kernels, np.flatnonzero(label == -1), M)
+
+    @classmethod
+    def _of_stencils(cls, M: sp.csr_matrix, st, shape: tuple[int, int]) -> ConvolutionSplit | None:
+        """The split of a matrix whose rows' stencils its assembly knows
+        (:class:`~stages.deblur.operator.Stencils`): the largest groups, each of at
+        least :data:`MIN_KERNEL_SHARE` of the rows, are the kernels."""
+        h, w = shape
+        n = h * w
+        nnz = np.diff(M.indptr)
+        label = np.full(n, -1, np.int8)
+        label[nnz == 0] = -2
+        sizes = np.bincount(st.group, minlength=len(st.reps))
+        starts = np.cumsum(st.counts) - st.counts
+        kernels: list[_Kernel] = []
+        for g in np.argsort(-sizes, kind="stable")[:MAX_KERNELS]:
+            if sizes[g] < MIN_KERNEL_SHARE * n:
+                break
+            rep = int(st.reps[g])
+            sl = slice(int(starts[g]), int(starts[g] + st.counts[g]))
+            off = st.cols[sl].astype(np.int64) - rep
+            found = _kernel_of(off, st.vals[sl], w) if off.size else None
+            if found is None:
+                continue
+            small, shift, dy, dx = found
+            rows = st.rows[st.group == g]
+            rows = rows[_inside(dy, dx, rows, h, w)]  # (so all along the assembly's plan)
+            label[rows] = len(kernels)
+            kernels.append(_Kernel(small, shift, (label == len(kernels)).reshape(h, w)))
+        taken = int(np.count_nonzero(label >= 0))
+        if not kernels or taken < MIN_SPLIT_SHARE * np.count_nonzero(nnz):
+            return None
+        return cls(shape, kernels, np.flatnonzero(label == -1), M)
+
+    def weights(self, wt: np.ndarray) -> list[np.ndarray]:
+        """The row weights ``wt`` (N,) as :meth:`normal` takes them: each kernel's
+        (H, W) float32 at its rows' stencil centres (row + shift), zero elsewhere (times
+        its tap squared for a one-tap stencil), then the other rows' (len(rest),)."""
+        h, w = self.shape
+        img = np.asarray(wt, np.float32).reshape(h, w)
+        out = []
+        for k in self.kernels:
+            (ry, rx), (cy, cx) = k.slices(h, w)
+            mw = np.zeros((h, w), np.float32)
+            mw[cy, cx] = np.where(k.mask[ry, rx], img[ry, rx], np.float32(0))
+            if k.tap is not None:
+                mw *= np.float32(k.tap * k.tap)
+            out.append(mw)
+        out.append(np.asarray(wt, np.float32)[self.rest])
+        return out
+
+    def normal(self, x: np.ndarray, weights: list[np.ndarray], out: np.ndarray) -> None:
+        """Add ``M.T @ (wt * (M @ x))`` to ``out``: ``x``, ``out`` (H, W) float32,
+        ``weights`` from :meth:`weights`.
+
+        With ``f`` the small kernel's correlation of ``x``, row ``r``'s value is
+        ``f[r + shift]``; weighted and put back at the centres ``r + shift``, the
+        flipped kernel's correlation spreads it over the row's columns (inside the image
+        for every row a kernel takes)."""
+        for k, mw in zip(self.kernels, weights, strict=False):
+            if k.tap is not None:  # a whole-pixel shift: one fused pass
+                out += x * mw
+                continue
+            f = k.correlate(x)
+            f *= mw
+            out += k.spread(f)
+        if self.rest.size:
+            v = self.R @ x.reshape(-1)[self.cols]
+            v *= weights[-1]
+            out.reshape(-1)[self.cols] += self.RT @ v
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """``M @ x`` for ``x`` (H, W) float32; (H W,) float32."""
+        h, w = self.shape
+        y = np.zeros((h, w), np.float32)
+        for k in self.kernels:
+            (ry, rx), (cy, cx) = k.slices(h, w)
+            f = k.correlate(x)
+            y[ry, rx] += np.where(k.mask[ry, rx], f[cy, cx], np.float32(0))
+        y = y.reshape(-1)
+        if self.rest.size:
+            y[self.rest] = self.R @ x.reshape(-1)[self.cols]
+        return y
+
+    def adjoint(self, y: np.ndarray) -> np.ndarray:
+        """``M.T @ y`` for ``y`` (H W,) float32; (H, W) float32."""
+        h, w = self.shape
+        img = np.asarray(y, np.float32).reshape(h, w)
+        out = np.zeros((h, w), np.float32)
+        for k in self.kernels:
+            (ry, rx), (cy, cx) = k.slices(h, w)
+            at_centres = np.zeros((h, w), np.float32)
+            at_centres[cy, cx] = np.where(k.mask[ry, rx], img[ry, rx], np.float32(0))
+            out += k.spread(at_centres)
+        if self.rest.size:
+            out.reshape(-1)[self.cols] += self.RT @ np.asarray(y, np.float32)[self.rest]
+        return out

@@ -1,0 +1,163 @@
+"""Measuring bins' operators as shifted convolutions (stages.deblur.convolution): the
+split reproduces the sparse operator exactly, its adjoint passes the dot-product test,
+and the deblur's stacked bins and the VET image's row blocks give the same products."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from stages.deblur.convolution import ConvolutionSplit
+from stages.deblur.operator import Window, blur_matrix
+from stages.deblur.stacked import StackedOperator, row_blocks
+
+H, W = 40, 56
+
+
+def _translate(v=(30.0, 4.0)) -> np.ndarray:
+    vel = np.zeros((H, W, 2), np.float32)
+    vel[...] = v
+    return vel
+
+
+def _object(v=(12.0, -5.0)) -> np.ndarray:
+    """A still background with a moving square (two layers)."""
+    vel = np.zeros((H, W, 2), np.float32)
+    vel[10:28, 14:36] = v
+    return vel
+
+
+def _bin(vel: np.ndarray, t0: float = 0.3, t1: float = 0.4, step: float = 0.5):
+    return blur_matrix(vel, [Window(t0, t1, 1.0)], step_px=step)
+
+
+def _rand(seed: int, n: int = H * W) -> np.ndarray:
+    return np.random.default_rng(seed).random(n).astype(np.float32)
+
+
+@pytest.mark.parametrize("vel", [_translate(), _translate((-17.0, 9.5)), _object()])
+def test_split_reproduces_the_operator_and_its_adjoint(vel):
+    M = _bin(vel)
+    S = ConvolutionSplit.of(M, (H, W))
+    assert S is not None
+    x, y, wt = _rand(0), _rand(1), _rand(2)
+    np.testing.assert_allclose(S.apply(x.reshape(H, W)), M @ x, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(S.adjoint(y).ravel(), M.T @ y, rtol=1e-5, atol=1e-7)
+    out = np.zeros((H, W), np.float32)
+    S.normal(x.reshape(H, W), S.weights(wt), out)
+    np.testing.assert_allclose(out.ravel(), M.T @ (wt * (M @ x)), rtol=1e-5, atol=1e-7)
+    # Dot-product test of the split's own pair.
+    lhs = float(np.dot(S.apply(x.reshape(H, W)).astype(np.float64), y))
+    rhs = float(np.dot(x.astype(np.float64), S.adjoint(y).ravel()))
+    assert abs(lhs - rhs) <= 1e-6 * abs(lhs)
+
+
+def test_kernels_take_the_layers_inside_and_leave_the_border_and_boundaries():
+    M = _bin(_object())
+    S = ConvolutionSplit.of(M, (H, W))
+    # The still background (a one-tap stencil) and the moving square.
+    assert len(S.kernels) == 2
+    taps = [k for k in S.kernels if k.tap is not None]
+    assert len(taps) == 1 and taps[0].shift == (0, 0)
+    moving = next(k for k in S.kernels if k.tap is None)
+    assert moving.mask[15:22, 20:30].all()  # the square's inside
+    # Rows near the square's edges (where the layers meet) are the sparse rest.
+    rest = np.zeros(H * W, bool)
+    rest[S.rest] = True
+    assert rest.reshape(H, W)[10:28, 14:36].any()
+    assert not rest.reshape(H, W)[:5].any()  # the still background far from the square
+
+
+def test_rows_whose_stencil_leaves_the_image_stay_sparse():
+    # The scene moves 8 px to the left over the bin, so a pixel sees the scene up to 8 px
+    # to its right: the last columns' samples are reflected at the border, so their rows
+    # are not the kernel's.
+    M = _bin(_translate((-80.0, 0.0)), 0.0, 0.1)
+    S = ConvolutionSplit.of(M, (H, W))
+    rest = np.zeros(H * W, bool)
+    rest[S.rest] = True
+    assert rest.reshape(H, W)[:, -8:].all()
+    assert not rest.reshape(H, W)[:, 2:-10].any()
+
+
+def test_a_whole_pixel_shift_is_one_tap():
+    M = _bin(_translate((20.0, -10.0)), 0.2, 0.2 + 1e-4, step=1.0)  # (4, -2) px
+    S = ConvolutionSplit.of(M, (H, W))
+    assert [k.tap is not None for k in S.kernels] == [True]
+    x, wt = _rand(3), _rand(4)
+    out = np.zeros((H, W), np.float32)
+    S.normal(x.reshape(H, W), S.weights(wt), out)
+    np.testing.assert_allclose(out.ravel(), M.T @ (wt * (M @ x)), rtol=1e-5, atol=1e-7)
+
+
+def test_an_operator_without_a_common_stencil_is_not_split():
+    rng = np.random.default_rng(5)
+    M = sp.random(H * W, H * W, density=3 / (H * W), format="csr", random_state=rng)
+    M.sum_duplicates()
+    assert ConvolutionSplit.of(M.astype(np.float32), (H, W)) is None
+    # Nor one whose shape is not the image's.
+    assert ConvolutionSplit.of(_bin(_translate()), (W, H + 1)) is None
+
+
+def test_stacked_bins_normal_product_matches_the_sparse_one():
+    vel = _object()
+    parts = [_bin(vel, t, t + 0.06) for t in np.arange(0.0, 0.6, 0.06)]
+    split = StackedOperator(parts, image_shape=(H, W))
+    plain = StackedOperator(parts)
+    assert all(g is not None for g in split.splits)
+    assert all(g is None for g in plain.splits)
+    n = H * W
+    x = np.stack([_rand(6), _rand(7)], 1)
+    for seed in (8, 9):  # two solves' weights: the held weights follow the new ones
+        w = np.random.default_rng(seed).random((len(parts) * n, 2))
+        for c in range(2):
+            xc = np.ascontiguousarray(x[:, c])
+            got = sum(split.normal_column(g, xc, w, c) for g in range(len(split.groups)))
+            want = sum(plain.normal_column(g, xc, w, c) for g in range(len(plain.groups)))
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_row_blocks_share_the_matrix_and_sum_to_its_normal_product():
+    A = blur_matrix(_translate(), [Window(0.0, 1.0, 1.0)], step_px=1.0)
+    x, w = _rand(10), _rand(11, A.shape[0])
+    blocks = row_blocks(A, 3)
+    assert [b[2] for b in blocks][0] == 0 and blocks[-1][3] == A.shape[0]
+    assert all(np.shares_memory(B.data, A.data) for B, *_ in blocks)
+    got = sum(BT @ (w[r0:r1] * (B @ x)) for B, BT, r0, r1 in blocks)
+    np.testing.assert_allclose(got, A.T @ (w * (A @ x)), rtol=1e-5, atol=1e-6)
+
+
+def test_vet_image_operator_splits_along_its_assembly_stencils():
+    # Exposure times in three groups: the assembly's stencil groups become the kernels
+    # (one per exposure time), with or without its plan (read from the rows then).
+    from stages.deblur.operator import vet_windows
+
+    h, w = 48, 80
+    vel = np.zeros((h, w, 2), np.float32)
+    vel[...] = (12.0, 3.0)
+    T = np.full((h, w), 0.8)
+    T[:, :10] = 0.2
+    T[30:] = 1.0
+    A = blur_matrix(vel, vet_windows(T, 1.0, 1 / 131, 131, 0.01), step_px=1.0, min_dt=1 / 131)
+    assert hasattr(A, "stencils")
+    x, wt = _rand(12, h * w), _rand(13, h * w)
+    want = A.T @ (wt * (A @ x))
+    for M in (A, sp.csr_matrix(A)):  # (a copy has no plan)
+        S = ConvolutionSplit.of(M, (h, w))
+        assert len(S.kernels) == 2  # (the 0.2 s group is under a kernel's share)
+        # 12 x 3 px of travel over the frame: 13 columns and 4 rows of bilinear taps.
+        assert all(k.small.shape == (4, 13) and k.shift == (-3, -12) for k in S.kernels)
+        out = np.zeros((h, w), np.float32)
+        S.normal(x.reshape(h, w), S.weights(wt), out)
+        np.testing.assert_allclose(out.ravel(), want, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(S.apply(x.reshape(h, w)), A @ x, rtol=1e-5, atol=1e-7)
+
+
+def test_a_kernel_too_large_for_a_direct_filter_leaves_its_rows_sparse():
+    # A long diagonal path: a kernel of over MAX_KERNEL_AREA taps' extent.
+    from stages.deblur.convolution import MAX_KERNEL_AREA
+
+    M = _bin(_translate((60.0, 60.0)), 0.0, 0.2)  # 12 x 12 px
+    assert ConvolutionSplit.of(M, (H, W)) is None
+    assert 13 * 13 > MAX_KERNEL_AREA
