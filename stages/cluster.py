@@ -107,6 +107,21 @@ def trim_heap() -> None:
 _MALLOC_TRIM: Any = None
 
 
+@contextlib.contextmanager
+def opencv_single_threaded() -> Iterator[None]:
+    """OpenCV on one thread inside the block (the process's setting restored after): for
+    OpenCV calls made on threads of a pool that already shares the cores, whose own
+    threads would only contend with it."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def limit_threads() -> None:
     """Limit this process to one OpenCV / OpenMP / BLAS / OpenImageIO thread (idempotent).
 

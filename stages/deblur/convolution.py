@@ -114,8 +114,11 @@ def _taken(M: sp.csr_matrix, rows: np.ndarray, off: np.ndarray, val: np.ndarray)
 
 def _inside(dy: np.ndarray, dx: np.ndarray, rows: np.ndarray, h: int, w: int) -> np.ndarray:
     """Which of ``rows`` keep every offset (dy, dx) inside the (h, w) image, bool."""
-    i, j = np.divmod(rows, w)
-    return (i >= -dy.min()) & (i < h - dy.max()) & (j >= -dx.min()) & (j < w - dx.max())
+    inside = np.zeros((h, w), bool)
+    inside[max(0, -dy.min()) : h - max(0, dy.max()), max(0, -dx.min()) : w - max(0, dx.max())] = (
+        True
+    )
+    return inside.reshape(-1)[rows]
 
 
 def _best_seed(M: sp.csr_matrix, open_rows: np.ndarray, nnz: np.ndarray, h: int, w: int):
@@ -216,7 +219,7 @@ class ConvolutionSplit:
             if found is None:
                 continue
             small, shift, dy, dx = found
-            rows = st.rows[st.group == g]
+            rows = st.rows if len(st.reps) == 1 else st.rows[st.group == g]
             rows = rows[_inside(dy, dx, rows, h, w)]  # (so all along the assembly's plan)
             label[rows] = len(kernels)
             kernels.append(_Kernel(small, shift, (label == len(kernels)).reshape(h, w)))

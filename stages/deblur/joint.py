@@ -78,7 +78,7 @@ from contextlib import nullcontext
 import numpy as np
 import scipy.sparse as sp
 
-from ..cluster import solve_threads
+from ..cluster import opencv_single_threaded, solve_threads
 from .camera_grid import bins_on_vet_grid
 from .joint_options import EDGE_REL_MIN, JointOptions
 from .operator import Layers, motion_layers
@@ -264,7 +264,11 @@ def solve_image(
         out += data.T
         return out
 
-    with ThreadPoolExecutor(threads) if threads > 1 else nullcontext(_Inline()) as pool:
+    # (OpenCV's convolutions on the pool's threads, not each on threads of its own.)
+    with (
+        ThreadPoolExecutor(threads) if threads > 1 else nullcontext(_Inline()) as pool,
+        opencv_single_threaded(),
+    ):
         return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
 
 

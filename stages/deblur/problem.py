@@ -335,19 +335,19 @@ def build_operators(
     A.convolution = ConvolutionSplit.of(A, obs.shape[:2])
     if obs.yb is None:
         return A, None
+    shape = obs.shape[:2] if obs.sampling is None else None
+
+    def one_bin(wins):
+        M = blur_matrix(velocity, wins, step_px=step_px_bins, min_dt=subframe_s, layers=layers)
+        return M, None if shape is None else ConvolutionSplit.of(M, shape)
+
     with ThreadPoolExecutor(max_workers=2) as pool:
-        mats = list(
-            pool.map(
-                lambda wins: blur_matrix(
-                    velocity, wins, step_px=step_px_bins, min_dt=subframe_s, layers=layers
-                ),
-                obs.windows_b,
-            )
-        )
-    if not mats:
+        made = list(pool.map(one_bin, obs.windows_b))
+    if not made:
         return A, None
+    mats = [m for m, _ in made]
     if obs.sampling is None:
-        return A, StackedOperator(mats, image_shape=obs.shape[:2])
+        return A, StackedOperator(mats, image_shape=shape, splits=[s for _, s in made])
     return A, StackedOperator([(obs.sampling @ M).tocsr() for M in mats], mats)
 
 

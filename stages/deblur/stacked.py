@@ -58,6 +58,7 @@ class StackedOperator:
         parts: list[sp.csr_matrix],
         blurs: list[sp.csr_matrix] | None = None,
         image_shape: tuple[int, int] | None = None,
+        splits: list[ConvolutionSplit | None] | None = None,
     ):
         self.rows = parts[0].shape[0]
         self.image_shape = image_shape
@@ -79,7 +80,11 @@ class StackedOperator:
         if image_shape is not None:  # (numpy's passes release the GIL: on the threads)
             from ..cluster import in_order
 
-            found = list(in_order(lambda i: ConvolutionSplit.of(parts[i], image_shape), len(parts)))
+            found = splits
+            if found is None:
+                found = list(
+                    in_order(lambda i: ConvolutionSplit.of(parts[i], image_shape), len(parts))
+                )
             for g, chunk in enumerate(self.splits):
                 b0 = g * step
                 split = found[b0 : b0 + len(chunk)]
