@@ -345,9 +345,10 @@ def build_operators(
         made = list(pool.map(one_bin, obs.windows_b))
     if not made:
         return A, None
-    mats = [m for m, _ in made]
+    mats, splits = [m for m, _ in made], [s for _, s in made]
+    del made
     if obs.sampling is None:
-        return A, StackedOperator(mats, image_shape=shape, splits=[s for _, s in made])
+        return A, StackedOperator(mats, image_shape=shape, splits=splits, release=True)
     return A, StackedOperator([(obs.sampling @ M).tocsr() for M in mats], mats)
 
 

@@ -59,36 +59,39 @@ class StackedOperator:
         blurs: list[sp.csr_matrix] | None = None,
         image_shape: tuple[int, int] | None = None,
         splits: list[ConvolutionSplit | None] | None = None,
+        release: bool = False,
     ):
+        """``parts``: the bins' (N, N) operators; ``image_shape`` (H, W): split them into
+        convolutions (``splits``: their splits, when the caller has them);
+        ``release``: set each of ``parts`` to None once stacked (the caller holds no
+        other reference), so that a part and its group's stack are not both held."""
         self.rows = parts[0].shape[0]
         self.image_shape = image_shape
+        self.shape = (self.rows * len(parts), parts[0].shape[1])
+        if image_shape is not None and splits is None:
+            from ..cluster import in_order  # (numpy's passes release the GIL: on the threads)
+
+            splits = list(
+                in_order(lambda i: ConvolutionSplit.of(parts[i], image_shape), len(parts))
+            )
+        step = -(-len(parts) // min(BIN_GROUPS, len(parts)))
+        #: (stack, its transposed view, first row, end row) of each group.
+        self.groups = []
         #: Each group's parts as shifted convolutions (:mod:`stages.deblur.convolution`)
         #: where every part of the group splits (operators on an ``image_shape`` grid),
         #: else None: :meth:`normal_column` then goes through them.
         self.splits: list[list[ConvolutionSplit] | None] = []
-        #: The row weights as the splits take them, by (group, channel): (``w``, them).
-        self._split_weights: dict[tuple[int, int], tuple[np.ndarray, list]] = {}
-        self.shape = (self.rows * len(parts), parts[0].shape[1])
-        step = -(-len(parts) // min(BIN_GROUPS, len(parts)))
-        #: (stack, its transposed view, first row, end row) of each group.
-        self.groups = []
         for b0 in range(0, len(parts), step):
             chunk = parts[b0 : b0 + step]
             M = chunk[0].tocsr() if len(chunk) == 1 else sp.vstack(chunk, format="csr")
             self.groups.append((M, M.T, b0 * self.rows, b0 * self.rows + M.shape[0]))
-            self.splits.append(chunk if image_shape is not None else None)
-        if image_shape is not None:  # (numpy's passes release the GIL: on the threads)
-            from ..cluster import in_order
-
-            found = splits
-            if found is None:
-                found = list(
-                    in_order(lambda i: ConvolutionSplit.of(parts[i], image_shape), len(parts))
-                )
-            for g, chunk in enumerate(self.splits):
-                b0 = g * step
-                split = found[b0 : b0 + len(chunk)]
-                self.splits[g] = None if any(p is None for p in split) else split
+            split = None if image_shape is None else splits[b0 : b0 + len(chunk)]
+            self.splits.append(None if split is None or None in split else split)
+            if release:
+                parts[b0 : b0 + len(chunk)] = [None] * len(chunk)
+            del chunk
+        #: The row weights as the splits take them, by (group, channel): (``w``, them).
+        self._split_weights: dict[tuple[int, int], tuple[np.ndarray, list]] = {}
         #: The bins' blurs on the VET grid (the groups' stacks, or what a camera's
         #: sampling multiplies): where the motion moves an integration path.
         self.blurs = [g[0] for g in self.groups] if blurs is None else blurs
