@@ -152,6 +152,9 @@ def test_vet_image_operator_splits_along_its_assembly_stencils():
         S.normal(x.reshape(h, w), S.weights(wt), out)
         np.testing.assert_allclose(out.ravel(), want, rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(S.apply(x.reshape(h, w)), A @ x, rtol=1e-5, atol=1e-7)
+    # Without its assembly's plan and not asked to search the rows: not split.
+    assert ConvolutionSplit.of(sp.csr_matrix(A), (h, w), detect=False) is None
+    assert ConvolutionSplit.of(A, (h, w), detect=False) is not None
 
 
 def test_a_kernel_too_large_for_a_direct_filter_leaves_its_rows_sparse():

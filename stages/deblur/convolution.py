@@ -161,10 +161,16 @@ class ConvolutionSplit:
         self.R, self.RT = R, R.T
 
     @classmethod
-    def of(cls, M: sp.csr_matrix, shape: tuple[int, int]) -> ConvolutionSplit | None:
+    def of(
+        cls, M: sp.csr_matrix, shape: tuple[int, int], detect: bool = True
+    ) -> ConvolutionSplit | None:
         """The split of ``M`` (N, N) CSR, canonical (sorted indices, no duplicates), for
         an image of ``shape`` (H, W); None where its kernels take under
-        :data:`MIN_SPLIT_SHARE` of the rows that have entries."""
+        :data:`MIN_SPLIT_SHARE` of the rows that have entries.
+
+        The kernels are the stencil groups of its assembly where it has them
+        (``M.stencils``, :class:`~stages.deblur.operator.Stencils`), else, with
+        ``detect``, stencils found among its rows (each checked on every row it takes)."""
         h, w = shape
         n = h * w
         if M.shape != (n, n) or n == 0:
@@ -172,7 +178,7 @@ class ConvolutionSplit:
         stencils = getattr(M, "stencils", None)
         if stencils is not None:
             return cls._of_stencils(M, stencils, shape)
-        if not M.has_canonical_format:
+        if not detect or not M.has_canonical_format:
             return None
         nnz = np.diff(M.indptr)
         label = np.where(nnz > 0, -1, -2).astype(np.int8)  # -1: not taken (yet)

@@ -331,8 +331,10 @@ def build_operators(
     # the bins' on two threads: numpy work that mostly releases the GIL, whose
     # temporaries are small.
     A = blur_matrix(velocity, obs.windows, step_px=step_px, min_dt=subframe_s, layers=layers)
-    # Its rows that are convolutions, applied as such in the solves (None: none are).
-    A.convolution = ConvolutionSplit.of(A, obs.shape[:2])
+    # Its rows that are convolutions, applied as such in the solves (None: none are):
+    # the groups of its assembly's plan (an exposure time and a layer each; found among
+    # the rows they are rarely common enough to pay for the search).
+    A.convolution = ConvolutionSplit.of(A, obs.shape[:2], detect=False)
     if obs.yb is None:
         return A, None
     shape = obs.shape[:2] if obs.sampling is None else None
