@@ -22,9 +22,9 @@ def _translate(v=(30.0, 4.0)) -> np.ndarray:
 
 
 def _object(v=(12.0, -5.0)) -> np.ndarray:
-    """A still background with a moving square (two layers)."""
+    """A still background with a moving rectangle (two layers, half the pixels each)."""
     vel = np.zeros((H, W, 2), np.float32)
-    vel[10:28, 14:36] = v
+    vel[6:34, 8:48] = v
     return vel
 
 
@@ -36,11 +36,17 @@ def _rand(seed: int, n: int = H * W) -> np.ndarray:
     return np.random.default_rng(seed).random(n).astype(np.float32)
 
 
+@pytest.mark.parametrize("compress", [0.5, 0.0])
 @pytest.mark.parametrize("vel", [_translate(), _translate((-17.0, 9.5)), _object()])
-def test_split_reproduces_the_operator_and_its_adjoint(vel):
+def test_split_reproduces_the_operator_and_its_adjoint(vel, compress, monkeypatch):
+    # (compress 0: the other rows kept on all the columns, as where they read most.)
+    from stages.deblur import convolution
+
+    monkeypatch.setattr(convolution, "COMPRESS_BELOW", compress)
     M = _bin(vel)
     S = ConvolutionSplit.of(M, (H, W))
-    assert S is not None
+    assert S is not None and S.rest.size
+    assert (S.cols is None) == (compress == 0.0)
     x, y, wt = _rand(0), _rand(1), _rand(2)
     np.testing.assert_allclose(S.apply(x.reshape(H, W)), M @ x, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(S.adjoint(y).ravel(), M.T @ y, rtol=1e-5, atol=1e-7)
@@ -56,17 +62,17 @@ def test_split_reproduces_the_operator_and_its_adjoint(vel):
 def test_kernels_take_the_layers_inside_and_leave_the_border_and_boundaries():
     M = _bin(_object())
     S = ConvolutionSplit.of(M, (H, W))
-    # The still background (a one-tap stencil) and the moving square.
+    # The still background (a one-tap stencil) and the moving rectangle.
     assert len(S.kernels) == 2
     taps = [k for k in S.kernels if k.tap is not None]
     assert len(taps) == 1 and taps[0].shift == (0, 0)
     moving = next(k for k in S.kernels if k.tap is None)
-    assert moving.mask[15:22, 20:30].all()  # the square's inside
-    # Rows near the square's edges (where the layers meet) are the sparse rest.
+    assert moving.mask[12:28, 16:40].all()  # the rectangle's inside
+    # Rows near its edges (where the layers meet) are the sparse rest.
     rest = np.zeros(H * W, bool)
     rest[S.rest] = True
-    assert rest.reshape(H, W)[10:28, 14:36].any()
-    assert not rest.reshape(H, W)[:5].any()  # the still background far from the square
+    assert rest.reshape(H, W)[6:34, 8:48].any()
+    assert not rest.reshape(H, W)[:3].any()  # the still background far from it
 
 
 def test_rows_whose_stencil_leaves_the_image_stay_sparse():
@@ -164,3 +170,18 @@ def test_a_kernel_too_large_for_a_direct_filter_leaves_its_rows_sparse():
     M = _bin(_translate((60.0, 60.0)), 0.0, 0.2)  # 12 x 12 px
     assert ConvolutionSplit.of(M, (H, W)) is None
     assert 13 * 13 > MAX_KERNEL_AREA
+
+
+def test_a_kernel_is_taken_only_where_it_saves_more_than_its_passes_cost():
+    from stages.deblur.convolution import _worth
+
+    n = 10_000
+    one_tap, three = np.ones((1, 1), np.float32), np.ones((1, 3), np.float32)
+    # A one-tap stencil costs one pass: worth it over a quarter of the rows.
+    assert _worth(3000, 1, one_tap, n) and not _worth(2000, 1, one_tap, n)
+    # A three-tap stencil of three entries costs four passes and its taps: worth it
+    # over two fifths of the rows.
+    assert _worth(4500, 3, three, n) and not _worth(3500, 3, three, n)
+    # The VET image's long rows pay for their 32 taps over a tenth of them.
+    long = np.ones((1, 32), np.float32)
+    assert _worth(1100, 32, long, n) and not _worth(900, 32, long, n)

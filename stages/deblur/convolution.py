@@ -26,10 +26,13 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
-#: At most this many kernels per operator (a still background and a few moving layers).
-MAX_KERNELS = 4
-#: A kernel must take at least this share of the rows (else its rows stay sparse).
-MIN_KERNEL_SHARE = 0.05
+#: At most this many kernels per operator (layers, or exposure times of the VET image).
+MAX_KERNELS = 8
+#: Costs in a sparse product's visits of one stored entry (``make bench``'s
+#: ``bench_products``: about 1 ns each), for a kernel to be worth its passes: a pass over
+#: the image (per pixel), and each of a kernel's taps in ``filter2D`` (per pixel).
+PASS_COST = 0.5
+TAP_COST = 0.07
 #: Rows whose stencils are tried as a kernel's, spread over the rows not yet taken.
 SEEDS = 8
 GOLDEN = (5**0.5 - 1) / 2
@@ -38,9 +41,22 @@ PROBE_ROWS = 512
 #: Largest kernel (rows x columns): OpenCV's ``filter2D`` goes through the DFT for larger
 #: ones, slower than the sparse rows (a long diagonal path stays sparse).
 MAX_KERNEL_AREA = 100
+#: The other rows are kept on the columns they read where those are under this share of
+#: the image (else on all: gathering most columns through an index costs more).
+COMPRESS_BELOW = 0.5
 #: An operator is split only where its kernels take at least this share of the rows
-#: that have entries.
+#: that have entries: the rest is a copy of its rows, beside the operator.
 MIN_SPLIT_SHARE = 0.5
+
+
+def _worth(rows: int, entries: int, small: np.ndarray, n: int) -> bool:
+    """Whether a kernel taking ``rows`` rows of ``entries`` entries each saves more than
+    its passes cost on an image of ``n`` pixels: the normal product visits each entry
+    twice; a one-tap kernel is one fused pass, another two correlations, a product and
+    a sum (:meth:`ConvolutionSplit.normal`)."""
+    taps = int(np.count_nonzero(small))
+    cost = PASS_COST if small.size == 1 else 4 * PASS_COST + 2 * TAP_COST * taps
+    return 2.0 * rows * entries > cost * n
 
 
 def _span(shift: int, n: int) -> tuple[slice, slice]:
@@ -155,9 +171,11 @@ class ConvolutionSplit:
         self.rest = rest
         R = M[rest]
         used = np.bincount(R.indices, minlength=M.shape[1]) > 0
-        self.cols = np.flatnonzero(used)
-        at = np.cumsum(used, dtype=R.indices.dtype) - 1
-        R = sp.csr_matrix((R.data, at[R.indices], R.indptr), shape=(rest.size, self.cols.size))
+        self.cols = None  # (all of them: no gather and scatter through an index)
+        if np.count_nonzero(used) < COMPRESS_BELOW * used.size:
+            self.cols = np.flatnonzero(used)
+            at = np.cumsum(used, dtype=R.indices.dtype) - 1
+            R = sp.csr_matrix((R.data, at[R.indices], R.indptr), shape=(rest.size, self.cols.size))
         self.R, self.RT = R, R.T
 
     @classmethod
@@ -165,8 +183,8 @@ class ConvolutionSplit:
         cls, M: sp.csr_matrix, shape: tuple[int, int], detect: bool = True
     ) -> ConvolutionSplit | None:
         """The split of ``M`` (N, N) CSR, canonical (sorted indices, no duplicates), for
-        an image of ``shape`` (H, W); None where its kernels take under
-        :data:`MIN_SPLIT_SHARE` of the rows that have entries.
+        an image of ``shape`` (H, W); None where no kernel is worth its passes
+        (:func:`_worth`) or the kernels take under :data:`MIN_SPLIT_SHARE` of its rows.
 
         The kernels are the stencil groups of its assembly where it has them
         (``M.stencils``, :class:`~stages.deblur.operator.Stencils`), else, with
@@ -185,28 +203,27 @@ class ConvolutionSplit:
         kernels: list[_Kernel] = []
         while len(kernels) < MAX_KERNELS:
             open_rows = np.flatnonzero(label == -1).astype(np.int32)
-            if open_rows.size < MIN_KERNEL_SHARE * n:
+            found = _best_seed(M, open_rows, nnz, h, w) if open_rows.size else None
+            if found is None:
                 break
-            found = _best_seed(M, open_rows, nnz, h, w)
-            if found is None or found[1] < MIN_KERNEL_SHARE * n:
+            (small, shift, off, val, dy, dx), count = found
+            if not _worth(count, off.size, small, n):
                 break  # (no stencil common enough: the rest stays sparse)
-            (small, shift, off, val, dy, dx), _ = found
             rows = open_rows[(nnz[open_rows] == off.size) & _inside(dy, dx, open_rows, h, w)]
             rows = rows[_taken(M, rows, off, val)]
-            if rows.size < MIN_KERNEL_SHARE * n:
+            if not _worth(rows.size, off.size, small, n):
                 break
             label[rows] = len(kernels)
             kernels.append(_Kernel(small, shift, (label == len(kernels)).reshape(h, w)))
-        taken = int(np.count_nonzero(label >= 0))
-        if not kernels or taken < MIN_SPLIT_SHARE * np.count_nonzero(nnz):
+        if not kernels or np.count_nonzero(label >= 0) < MIN_SPLIT_SHARE * np.count_nonzero(nnz):
             return None
         return cls(shape, kernels, np.flatnonzero(label == -1), M)
 
     @classmethod
     def _of_stencils(cls, M: sp.csr_matrix, st, shape: tuple[int, int]) -> ConvolutionSplit | None:
         """The split of a matrix whose rows' stencils its assembly knows
-        (:class:`~stages.deblur.operator.Stencils`): the largest groups, each of at
-        least :data:`MIN_KERNEL_SHARE` of the rows, are the kernels."""
+        (:class:`~stages.deblur.operator.Stencils`): the largest groups, each where it
+        is worth its passes (:func:`_worth`), are the kernels."""
         h, w = shape
         n = h * w
         nnz = np.diff(M.indptr)
@@ -216,8 +233,6 @@ class ConvolutionSplit:
         starts = np.cumsum(st.counts) - st.counts
         kernels: list[_Kernel] = []
         for g in np.argsort(-sizes, kind="stable")[:MAX_KERNELS]:
-            if sizes[g] < MIN_KERNEL_SHARE * n:
-                break
             rep = int(st.reps[g])
             sl = slice(int(starts[g]), int(starts[g] + st.counts[g]))
             off = st.cols[sl].astype(np.int64) - rep
@@ -225,14 +240,26 @@ class ConvolutionSplit:
             if found is None:
                 continue
             small, shift, dy, dx = found
+            if not _worth(int(sizes[g]), off.size, small, n):
+                continue
             rows = st.rows if len(st.reps) == 1 else st.rows[st.group == g]
             rows = rows[_inside(dy, dx, rows, h, w)]  # (so all along the assembly's plan)
             label[rows] = len(kernels)
             kernels.append(_Kernel(small, shift, (label == len(kernels)).reshape(h, w)))
-        taken = int(np.count_nonzero(label >= 0))
-        if not kernels or taken < MIN_SPLIT_SHARE * np.count_nonzero(nnz):
+        if not kernels or np.count_nonzero(label >= 0) < MIN_SPLIT_SHARE * np.count_nonzero(nnz):
             return None
         return cls(shape, kernels, np.flatnonzero(label == -1), M)
+
+    def _cols(self, x: np.ndarray) -> np.ndarray:
+        """The columns of ``x`` (N,) the other rows read."""
+        return x if self.cols is None else x[self.cols]
+
+    def _add_cols(self, out: np.ndarray, z: np.ndarray) -> None:
+        """Add ``z`` (the other rows' adjoint, on their columns) to ``out`` (N,)."""
+        if self.cols is None:
+            out += z
+        else:
+            out[self.cols] += z
 
     def weights(self, wt: np.ndarray) -> list[np.ndarray]:
         """The row weights ``wt`` (N,) as :meth:`normal` takes them: each kernel's
@@ -267,9 +294,9 @@ class ConvolutionSplit:
             f *= mw
             out += k.spread(f)
         if self.rest.size:
-            v = self.R @ x.reshape(-1)[self.cols]
+            v = self.R @ self._cols(x.reshape(-1))
             v *= weights[-1]
-            out.reshape(-1)[self.cols] += self.RT @ v
+            self._add_cols(out.reshape(-1), self.RT @ v)
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """``M @ x`` for ``x`` (H, W) float32; (H W,) float32."""
@@ -281,7 +308,7 @@ class ConvolutionSplit:
             y[ry, rx] += np.where(k.mask[ry, rx], f[cy, cx], np.float32(0))
         y = y.reshape(-1)
         if self.rest.size:
-            y[self.rest] = self.R @ x.reshape(-1)[self.cols]
+            y[self.rest] = self.R @ self._cols(x.reshape(-1))
         return y
 
     def adjoint(self, y: np.ndarray) -> np.ndarray:
@@ -295,5 +322,5 @@ class ConvolutionSplit:
             at_centres[cy, cx] = np.where(k.mask[ry, rx], img[ry, rx], np.float32(0))
             out += k.spread(at_centres)
         if self.rest.size:
-            out.reshape(-1)[self.cols] += self.RT @ np.asarray(y, np.float32)[self.rest]
+            self._add_cols(out.reshape(-1), self.RT @ np.asarray(y, np.float32)[self.rest])
         return out

@@ -1,0 +1,139 @@
+"""Benchmark: the solve's normal products as sparse matrices against their split into
+shifted convolutions (stages.deblur.convolution).
+
+For a tile-sized frame (default 474 x 559, a 1280 x 1024 frame's tile with its halo) and
+a few motions over a 1 s frame of 131 subframes, it assembles the VET image's operator
+(exposure times from a smooth map, 40% of the pixels open all frame) and 16 measuring
+bins' operators as the default deblur does (VET samples 1 px apart, bins' 1.5 px), then
+times ``M.T diag(w) M x`` both ways (split as the deblur splits them: the VET image's
+along its assembly's stencil groups only, the bins' also by a search of their rows) (the median of several, one thread) and checks that
+they agree. Prints per motion and operator: non-zeros per row, the share of rows the
+kernels take, milliseconds for the sparse product and the split, their ratio, and the
+largest difference relative to the largest value.
+
+Run: ``.venv/bin/python -m tests.benchmarks.bench_products [WxH]``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from stages.deblur.convolution import ConvolutionSplit
+from stages.deblur.operator import Window, blur_matrix, vet_windows
+
+FRAME_S, SUBFRAMES, LEAKAGE, BINS = 1.0, 131, 0.01, 16
+MOTIONS = {
+    "translate 30,0": ((30.0, 0.0), None),
+    "translate 21,21": ((21.0, 21.0), None),
+    "object 24,-6 on a still background": ((24.0, -6.0), "object"),
+}
+
+
+def _velocity(shape, v, kind) -> np.ndarray:
+    h, w = shape
+    vel = np.zeros((h, w, 2), np.float32)
+    if kind == "object":
+        vel[h // 4 : 3 * h // 4, w // 4 : 3 * w // 4] = v
+    else:
+        vel[...] = v
+    return vel
+
+
+def _exposure(shape, seed: int = 0) -> np.ndarray:
+    """Closure times (s) on the subframe grid: a smooth random map, 40% open all frame."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    field = cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 12)
+    q = np.quantile(field, 0.6)
+    frac = np.clip((field - field.min()) / max(q - field.min(), 1e-9), 0.02, 1.0)
+    sub = FRAME_S / SUBFRAMES
+    return np.maximum(np.round(frac * SUBFRAMES), 1) * sub
+
+
+def _median_ms(fn, reps: int = 7) -> float:
+    fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def _compare(M, shape, seed: int, detect: bool):
+    rng = np.random.default_rng(seed)
+    n = shape[0] * shape[1]
+    x, wt = rng.random(n).astype(np.float32), rng.random(n).astype(np.float32)
+    S = ConvolutionSplit.of(M, shape, detect=detect)
+    MT = M.T
+    csr = _median_ms(lambda: MT @ (wt * (M @ x)))
+    if S is None:
+        return M.nnz / n, 0.0, csr, None, None
+    weights = S.weights(wt)
+    out = np.zeros(shape, np.float32)
+
+    def split():
+        out[...] = 0
+        S.normal(x.reshape(shape), weights, out)
+
+    ms = _median_ms(split)
+    want = MT @ (wt * (M @ x))
+    err = float(np.abs(out.ravel() - want).max() / np.abs(want).max())
+    taken = float(sum(k.mask.sum() for k in S.kernels)) / n
+    return M.nnz / n, taken, csr, ms, err
+
+
+def main(size: str = "474x559") -> list[dict]:
+    from stages.cluster import opencv_single_threaded
+
+    w, h = (int(v) for v in size.split("x"))
+    shape = (h, w)
+    T = _exposure(shape)
+    edges = np.linspace(0.0, SUBFRAMES, BINS + 1).round() * (FRAME_S / SUBFRAMES)
+    rows = []
+    print(f"frame {w} x {h}, {BINS} bins, one thread (cv2 threads: 1)")
+    print(
+        f"{'motion':36s} {'operator':8s} {'nnz/row':>7s} {'taken':>6s} {'sparse ms':>9s}"
+        f" {'split ms':>8s} {'ratio':>6s} {'max diff':>9s}"
+    )
+    with opencv_single_threaded():
+        for name, (v, kind) in MOTIONS.items():
+            vel = _velocity(shape, v, kind)
+            A = blur_matrix(
+                vel,
+                vet_windows(T, FRAME_S, FRAME_S / SUBFRAMES, SUBFRAMES, LEAKAGE),
+                step_px=1.0,
+                min_dt=FRAME_S / SUBFRAMES,
+            )
+            bins = [
+                blur_matrix(vel, [Window(a, b, 1.0)], step_px=1.5, min_dt=FRAME_S / SUBFRAMES)
+                for a, b in zip(edges[:-1], edges[1:], strict=True)
+            ]
+            parts = {"VET": [A], "bins": bins}
+            for op, mats in parts.items():
+                res = [_compare(M, shape, seed, op == "bins") for seed, M in enumerate(mats)]
+                nnz = sum(r[0] for r in res)
+                taken = float(np.mean([r[1] for r in res]))
+                csr = sum(r[2] for r in res)
+                split = None if any(r[3] is None for r in res) else sum(r[3] for r in res)
+                err = None if split is None else max(r[4] for r in res)
+                rows.append(
+                    dict(motion=name, operator=op, nnz=nnz, taken=taken, csr=csr, split=split)
+                )
+                split_s = "-" if split is None else f"{split:8.2f}"
+                ratio_s = "-" if split is None else f"{csr / split:6.2f}"
+                err_s = "-" if err is None else f"{err:9.1e}"
+                print(
+                    f"{name:36s} {op:8s} {nnz:7.1f} {taken:6.1%} {csr:9.2f} {split_s:>8s}"
+                    f" {ratio_s:>6s} {err_s:>9s}",
+                    flush=True,
+                )
+    return rows
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
