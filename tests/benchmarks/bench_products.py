@@ -3,7 +3,8 @@ shifted convolutions (stages.deblur.convolution).
 
 For a tile-sized frame (default 474 x 559, a 1280 x 1024 frame's tile with its halo) and
 a few motions over a 1 s frame of 131 subframes, it assembles the VET image's operator
-(exposure times from a smooth map, 40% of the pixels open all frame) and 16 measuring
+(exposure times from a smooth map with 40% or 80% of the pixels open all frame: a
+kernel per exposure time, the VET rows split where those open all frame are most) and 16 measuring
 bins' operators as the default deblur does (VET samples 1 px apart, bins' 1.5 px), then
 times ``M.T diag(w) M x`` both ways (split as the deblur splits them: the VET image's
 along its assembly's stencil groups only, the bins' also by a search of their rows) (the median of several, one thread) and checks that
@@ -25,6 +26,8 @@ from stages.deblur.convolution import ConvolutionSplit
 from stages.deblur.operator import Window, blur_matrix, vet_windows
 
 FRAME_S, SUBFRAMES, LEAKAGE, BINS = 1.0, 131, 0.01, 16
+#: Shares of the pixels open all frame in the VET image's exposure maps.
+OPEN_SHARES = (0.4, 0.8)
 MOTIONS = {
     "translate 30,0": ((30.0, 0.0), None),
     "translate 21,21": ((21.0, 21.0), None),
@@ -42,13 +45,14 @@ def _velocity(shape, v, kind) -> np.ndarray:
     return vel
 
 
-def _exposure(shape, seed: int = 0) -> np.ndarray:
-    """Closure times (s) on the subframe grid: a smooth random map, 40% open all frame."""
+def _exposure(shape, open_share: float, seed: int = 0) -> np.ndarray:
+    """Closure times (s) on the subframe grid: a smooth random map, ``open_share`` of the
+    pixels open all frame (dark), the others closed at times spread over the frame."""
     import cv2
 
     rng = np.random.default_rng(seed)
     field = cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 12)
-    q = np.quantile(field, 0.6)
+    q = np.quantile(field, 1.0 - open_share)
     frac = np.clip((field - field.min()) / max(q - field.min(), 1e-9), 0.02, 1.0)
     sub = FRAME_S / SUBFRAMES
     return np.maximum(np.round(frac * SUBFRAMES), 1) * sub
@@ -92,7 +96,6 @@ def main(size: str = "474x559") -> list[dict]:
 
     w, h = (int(v) for v in size.split("x"))
     shape = (h, w)
-    T = _exposure(shape)
     edges = np.linspace(0.0, SUBFRAMES, BINS + 1).round() * (FRAME_S / SUBFRAMES)
     rows = []
     print(f"frame {w} x {h}, {BINS} bins, one thread (cv2 threads: 1)")
@@ -103,17 +106,16 @@ def main(size: str = "474x559") -> list[dict]:
     with opencv_single_threaded():
         for name, (v, kind) in MOTIONS.items():
             vel = _velocity(shape, v, kind)
-            A = blur_matrix(
-                vel,
-                vet_windows(T, FRAME_S, FRAME_S / SUBFRAMES, SUBFRAMES, LEAKAGE),
-                step_px=1.0,
-                min_dt=FRAME_S / SUBFRAMES,
-            )
-            bins = [
+            parts = {}
+            for share in OPEN_SHARES:
+                T = _exposure(shape, share)
+                wins = vet_windows(T, FRAME_S, FRAME_S / SUBFRAMES, SUBFRAMES, LEAKAGE)
+                A = blur_matrix(vel, wins, step_px=1.0, min_dt=FRAME_S / SUBFRAMES)
+                parts[f"VET {share:.0%}"] = [A]
+            parts["bins"] = [
                 blur_matrix(vel, [Window(a, b, 1.0)], step_px=1.5, min_dt=FRAME_S / SUBFRAMES)
                 for a, b in zip(edges[:-1], edges[1:], strict=True)
             ]
-            parts = {"VET": [A], "bins": bins}
             for op, mats in parts.items():
                 res = [_compare(M, shape, seed, op == "bins") for seed, M in enumerate(mats)]
                 nnz = sum(r[0] for r in res)
