@@ -339,15 +339,15 @@ def test_the_smoothness_keeps_low_contrast_texture_where_the_data_resolve_it():
     """A 3% step: where the pixel gathered 10^4 electrons (relative noise 1%) the edge
     scale falls to 3 sigma = 3% and the step is smoothed less than with the fixed 8%;
     where it gathered 100 electrons (10%) the scale stays 8% and nothing changes."""
-    from stages.deblur.joint import _smooth_weights
+    from stages.deblur.image_step import smooth_weights
 
     L = np.ones((4, 6, 1))
     L[:, 3:] = 1.03
     ref = np.ones_like(L)
     for electrons, changed in ((1e4, True), (100.0, False)):
         prec = np.full_like(L, electrons)  # electrons / rate^2 at rate 1
-        fixed, _ = _smooth_weights(L, ref, prec, 0.15, 0.08)
-        adaptive, _ = _smooth_weights(L, ref, prec, 0.15, 0.08, edge_snr=3.0)
+        fixed, _ = smooth_weights(L, ref, prec, 0.15, 0.08)
+        adaptive, _ = smooth_weights(L, ref, prec, 0.15, 0.08, edge_snr=3.0)
         step = (slice(None), 2)
         if changed:
             assert adaptive[step].max() < 0.8 * fixed[step].min()

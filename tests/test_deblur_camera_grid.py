@@ -103,7 +103,8 @@ def test_the_coarse_level_reproduces_a_blockwise_constant_image():
 def test_still_pixels_fitted_through_the_sampling_take_no_smoothness():
     """solve_image with ``still`` covering every pixel fits them on their data alone: the
     prior's weight changes nothing, where without ``still`` it smooths the result."""
-    from stages.deblur.joint import JointOptions, solve_image
+    from stages.deblur.image_step import solve_image
+    from stages.deblur.joint import JointOptions
 
     truth = texture()
     cap = noiseless_capture(truth)

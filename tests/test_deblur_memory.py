@@ -229,7 +229,7 @@ def test_the_solve_gives_the_same_image_on_one_thread_and_on_several(monkeypatch
     # The products' pieces are summed in the same order however many threads make
     # them: a worker limited to one thread (Dask) gets the same image to the bit.
     from stages import cluster
-    from stages.deblur import deblur, joint
+    from stages.deblur import deblur, image_step
 
     cap = simulate(
         builtin_interior(64, 48),
@@ -241,7 +241,7 @@ def test_the_solve_gives_the_same_image_on_one_thread_and_on_several(monkeypatch
     )["vet"]
     got = {}
     for threads in (1, 3):
-        monkeypatch.setattr(joint, "solve_threads", lambda t=threads: t)
+        monkeypatch.setattr(image_step, "solve_threads", lambda t=threads: t)
         got[threads] = deblur(cap)[0].radiance
     np.testing.assert_array_equal(got[1], got[3])
     monkeypatch.setenv("OMP_NUM_THREADS", "1")

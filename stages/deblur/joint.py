@@ -72,15 +72,12 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
 
 import numpy as np
-import scipy.sparse as sp
 
-from ..cluster import opencv_single_threaded, solve_threads
 from .camera_grid import bins_on_vet_grid
-from .joint_options import EDGE_REL_MIN, JointOptions
+from .image_step import solve_image
+from .joint_options import JointOptions
 from .operator import Layers, motion_layers
 from .path_steps import robust_misfit
 from .problem import (
@@ -88,202 +85,12 @@ from .problem import (
     VET_STEP_COARSE,
     Observations,
     build_operators,
-    grad,
-    pcg,
-    smooth_normal,
 )
-from .stacked import StackedOperator, diag_normal, product, row_blocks
+from .stacked import diag_normal, product
 from .still_pixels import fuse_still, moving_support
 from .stream import StreamTerm, layer_motion, stream_term
 
 log = logging.getLogger(__name__)
-
-#: Blocks of rows the VET image's normal product is made in (:func:`solve_image`).
-VET_ROW_BLOCKS = 2
-
-
-def _smooth_weights(
-    L: np.ndarray,
-    ref: np.ndarray,
-    prec: np.ndarray,
-    lam: float,
-    edge_rel: float,
-    edge_snr: float = 0.0,
-):
-    """Edge weights of the relative smoothness for the x and y differences.
-
-    The Charbonnier scale is ``edge_rel`` (relative); with ``edge_snr`` > 0 it falls to
-    ``edge_snr`` times the pixel's relative noise where that is smaller (a well-exposed
-    pixel's low-contrast texture is kept), never below :data:`EDGE_REL_MIN`.
-    """
-    gx, gy = grad(L)
-    rx = np.maximum(ref, np.roll(ref, -1, axis=1))
-    ry = np.maximum(ref, np.roll(ref, -1, axis=0))
-    px = np.minimum(prec, np.roll(prec, -1, axis=1))
-    py = np.minimum(prec, np.roll(prec, -1, axis=0))
-    if edge_snr > 0:
-        electrons = np.maximum(prec * ref * ref, 1.0)
-        edge = np.clip(edge_snr / np.sqrt(electrons), EDGE_REL_MIN, edge_rel)
-        ex = np.maximum(edge, np.roll(edge, -1, axis=1))
-        ey = np.maximum(edge, np.roll(edge, -1, axis=0))
-    else:
-        ex = ey = edge_rel
-    cx = 1.0 / np.sqrt(1.0 + (gx / (ex * rx)) ** 2)
-    cy = 1.0 / np.sqrt(1.0 + (gy / (ey * ry)) ** 2)
-    sx = lam * px * cx
-    sy = lam * py * cy
-    sx[:, -1] = 0
-    sy[-1] = 0
-    return sx, sy
-
-
-def _diag_AtWA(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
-    return diag_normal(A, w)
-
-
-def _mv(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
-    """``A @ x`` in the matrix's float32 (no per-call upcast copy of ``A``)."""
-    return product(A, x).astype(np.float64)
-
-
-def _mvt(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
-    return np.asarray(A.T @ x.astype(np.float32), dtype=np.float64)
-
-
-def solve_image(
-    obs: Observations,
-    A: sp.csr_matrix,
-    Ab: StackedOperator | None,
-    w: np.ndarray,
-    wb: np.ndarray | None,
-    L: np.ndarray,
-    ref: np.ndarray,
-    anchor: np.ndarray,
-    anchor_w: np.ndarray,
-    opts: JointOptions,
-    iters: int,
-    expo: np.ndarray,
-    callback: Callable[[int, np.ndarray], None] | None = None,
-    free: np.ndarray | None = None,
-    data_diag: np.ndarray | None = None,
-    ws: np.ndarray | None = None,
-    still: np.ndarray | None = None,
-) -> np.ndarray:
-    """One weighted least-squares image step (PCG), ``L`` of shape (H W, C).
-
-    ``free`` (H W,) bool: the pixels re-estimated; the others keep their value in ``L``.
-    ``data_diag``: the diagonal of the data terms' normal matrix for the preconditioner
-    (computed from ``w``, ``wb`` when not given; any positive approximation will do).
-    ``ws``: the weights of the measuring stream's term ``obs.stream`` (when it has one).
-    ``still`` (H W,) bool: free pixels that no moving path touches, re-estimated from
-    their data alone (no smoothness between two of them), as
-    :func:`~stages.deblur.still_pixels.fuse_still` would where their columns do not
-    overlap.
-    """
-    h, wd, c = obs.shape
-    n = h * wd
-    AT = A.T  # one transposed view for all the products below
-    S = obs.stream
-    if data_diag is None:
-        data_diag = _diag_AtWA(A, w)
-        if Ab is not None:
-            data_diag = data_diag + Ab.diag_normal(wb)
-        if S is not None:
-            data_diag = data_diag + S.diag_normal(ws)
-    rhs = product(AT, (w * obs.y).astype(np.float32)).astype(np.float64)
-    if Ab is not None:
-        rhs += Ab.mvt_weighted(wb, obs.yb)
-    if S is not None:
-        rhs += S.adjoint(ws * S.y)
-    rhs += anchor_w * anchor
-    # Precision a pixel at the reference level would have from its own exposure alone
-    # (electrons / rate^2): the prior's weight does not shrink where the data are
-    # contaminated by bright light passing by, so the prior decides there.
-    prec = (expo / ref.reshape(n, c)).reshape(h, wd, c)
-    sx, sy = _smooth_weights(L.reshape(h, wd, c), ref, prec, opts.lam, opts.edge_rel, opts.edge_snr)
-    del prec
-    if still is not None:
-        st = still.reshape(h, wd, 1)
-        sx[:, :-1] *= ~(st[:, :-1] & st[:, 1:])
-        sy[:-1] *= ~(st[:-1] & st[1:])
-    dsm = np.zeros((h, wd, c))
-    dsm += sx
-    dsm[:, 1:] += sx[:, :-1]
-    dsm += sy
-    dsm[1:] += sy[:-1]
-    diag = data_diag + dsm.reshape(n, c)
-    del dsm
-    diag += anchor_w
-    anchored = np.flatnonzero(np.any(anchor_w != 0, axis=1))  # (few: pixels only bounded)
-
-    threads = solve_threads()
-    split = getattr(A, "convolution", None)
-    if split is not None:
-        # The VET image's operator as convolutions (stages.deblur.convolution), with
-        # each channel's weights as they take them, for the whole solve.
-        blocks = [None]
-        split_w = [split.weights(w[:, k]) for k in range(c)]
-    else:
-        # The VET image's rows in blocks (views of A's arrays), so that its normal
-        # product, the largest, is shared between threads like the bins' groups (as many
-        # blocks whatever the threads: the pieces sum in one order, to the same image).
-        blocks = row_blocks(A, VET_ROW_BLOCKS)
-
-    def vet_column(xc: np.ndarray, k: int, b: int) -> np.ndarray:
-        if split is not None:
-            out = np.zeros((h, wd), np.float32)
-            split.normal(xc.reshape(h, wd), split_w[k], out)
-            return out.reshape(-1)
-        Mb, MbT, r0, r1 = blocks[b]
-        y = Mb @ xc
-        y *= w[r0:r1, k]
-        return MbT @ y
-
-    def apply_h(x: np.ndarray) -> np.ndarray:
-        # The data terms' products in pieces (the VET image's and each group of bins',
-        # channel by channel) on the process's threads (scipy's sparse products release
-        # the GIL); inline in a worker limited to one.
-        xs = [np.ascontiguousarray(x[:, k], np.float32) for k in range(c)]
-        jobs = [
-            (k, pool.submit(vet_column, xs[k], k, b)) for k in range(c) for b in range(len(blocks))
-        ]
-        if Ab is not None:
-            jobs += [
-                (k, pool.submit(Ab.normal_column, g, xs[k], wb, k))
-                for k in range(c)
-                for g in range(len(Ab.groups))
-            ]
-        out = smooth_normal(x.reshape(h, wd, c), sx, sy).reshape(n, c)
-        if S is not None:
-            out += S.adjoint(ws * S.apply(x))
-        if anchored.size:
-            out[anchored] += anchor_w[anchored] * x[anchored]
-        data = np.zeros((c, n))  # (each channel's pieces add contiguously)
-        for k, job in jobs:
-            data[k] += job.result()
-        out += data.T
-        return out
-
-    # (OpenCV's convolutions on the pool's threads, not each on threads of its own.)
-    with (
-        ThreadPoolExecutor(threads) if threads > 1 else nullcontext(_Inline()) as pool,
-        opencv_single_threaded(),
-    ):
-        return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
-
-
-class _Inline:
-    """A stand-in for an executor that runs each call at once (``submit(...).result()``)."""
-
-    class _Done:
-        def __init__(self, value):
-            self.value = value
-
-        def result(self):
-            return self.value
-
-    def submit(self, fn, *args):
-        return self._Done(fn(*args))
 
 
 def _robust(r: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
@@ -496,7 +303,7 @@ def deblur_joint(
             built_layers = layers
             # Preconditioner from the noise weights (the robust reweighting only lowers
             # them; the preconditioner need not follow exactly).
-            data_diag = _diag_AtWA(A, obs.w)
+            data_diag = diag_normal(A, obs.w)
             if Ab is not None:
                 data_diag += Ab.diag_normal(obs.wb)
             if S is not None:
@@ -557,7 +364,7 @@ def deblur_joint(
         L = np.where(free[:, None], np.maximum(L, floor), L)
         ts = time.perf_counter()
         if not last or refine_path:  # (the residuals of the image step's result)
-            r = _mv(A, L) - obs.y
+            r = product(A, L).astype(np.float64) - obs.y
             rb = None
             if Ab is not None:
                 rb = Ab.mv(L)
