@@ -185,3 +185,23 @@ def test_a_kernel_is_taken_only_where_it_saves_more_than_its_passes_cost():
     # The VET image's long rows pay for their 32 taps over a tenth of them.
     long = np.ones((1, 32), np.float32)
     assert _worth(1100, 32, long, n) and not _worth(900, 32, long, n)
+
+
+def test_stacked_bins_release_their_parts_once_stacked():
+    parts = [_bin(_translate(), t, t + 0.05) for t in (0.0, 0.05, 0.1)]
+    want = [P.copy() for P in parts]
+    S = StackedOperator(parts, image_shape=(H, W), release=True)
+    assert parts == [None, None, None]  # (each part's stack holds its rows)
+    x = _rand(14)
+    np.testing.assert_allclose(S.mv(x[:, None])[:, 0], np.concatenate([P @ x for P in want]))
+
+
+def test_opencv_single_threaded_restores_the_thread_count():
+    import cv2
+
+    from stages.cluster import opencv_single_threaded
+
+    before = cv2.getNumThreads()
+    with opencv_single_threaded():
+        assert cv2.getNumThreads() == 1
+    assert cv2.getNumThreads() == before

@@ -4,15 +4,17 @@ A measuring bin's blur operator (:func:`stages.deblur.operator.blur_matrix` over
 window shared by every pixel) is, row by row, one of a few stencils: a layer's motion
 over the bin is the same for all its pixels, so the rows of the pixels inside a layer and
 away from the image border hold the same weights at the same offsets. Those rows are a
-shifted convolution: a small kernel (the stencil about its centre) applied by OpenCV's
-``filter2D`` and an integer shift applied by slicing, both passes of contiguous loads,
-where a sparse product gathers every non-zero through its column index. The other rows
+shifted convolution: a small kernel (the stencil's bounding box) correlated by OpenCV's
+``filter2D`` and read at the row's pixel moved by the stencil's first offsets (an
+integer shift), passes of contiguous loads, where a sparse product gathers every
+non-zero through its column index. The other rows
 (the image border, where coordinates are reflected, and where layers meet) stay sparse.
 
 The split is exact: a row is taken by a kernel only where every one of its entries is
 that kernel's, at the same offset, and lies inside the image, so the convolution sums
-that row's terms (in float32, in another order). The adjoint is the correlation with the
-flipped kernel, shifted back, on the rows the kernel took, plus the other rows' transpose.
+that row's terms (in float32, in another order). The adjoint puts the rows' values back
+at their shifted pixels and correlates them with the flipped kernel, plus the other rows'
+transpose.
 
 Shapes: the operator ``M`` is (N, N) CSR for an image of (H, W) = N pixels (rows: observed
 pixels, columns: unknown pixels, both row-major); images are (H, W) float32.
@@ -60,7 +62,7 @@ def _worth(rows: int, entries: int, small: np.ndarray, n: int) -> bool:
 
 
 def _span(shift: int, n: int) -> tuple[slice, slice]:
-    """(rows whose centre ``i + shift`` is inside ``n``, those centres) along one axis."""
+    """(rows whose ``i + shift`` is inside ``n``, those positions) along one axis."""
     lo, hi = max(0, -shift), n - max(0, shift)
     return slice(lo, hi), slice(lo + shift, hi + shift)
 
@@ -166,8 +168,8 @@ class ConvolutionSplit:
     def __init__(self, shape: tuple[int, int], kernels: list[_Kernel], rest: np.ndarray, M):
         self.shape = shape
         self.kernels = kernels
-        #: The rows no kernel takes (rows with no entries left out), and their matrix
-        #: restricted to the columns it touches (``cols``).
+        #: The rows no kernel takes (rows with no entries left out), and their matrix,
+        #: on the columns they read (``cols``; None: on all of them).
         self.rest = rest
         R = M[rest]
         used = np.bincount(R.indices, minlength=M.shape[1]) > 0
@@ -263,7 +265,7 @@ class ConvolutionSplit:
 
     def weights(self, wt: np.ndarray) -> list[np.ndarray]:
         """The row weights ``wt`` (N,) as :meth:`normal` takes them: each kernel's
-        (H, W) float32 at its rows' stencil centres (row + shift), zero elsewhere (times
+        (H, W) float32 at its rows' pixels moved by its shift, zero elsewhere (times
         its tap squared for a one-tap stencil), then the other rows' (len(rest),)."""
         h, w = self.shape
         img = np.asarray(wt, np.float32).reshape(h, w)
@@ -283,7 +285,7 @@ class ConvolutionSplit:
         ``weights`` from :meth:`weights`.
 
         With ``f`` the small kernel's correlation of ``x``, row ``r``'s value is
-        ``f[r + shift]``; weighted and put back at the centres ``r + shift``, the
+        ``f[r + shift]``; weighted and put back at ``r + shift``, the
         flipped kernel's correlation spreads it over the row's columns (inside the image
         for every row a kernel takes)."""
         for k, mw in zip(self.kernels, weights, strict=False):
@@ -318,9 +320,9 @@ class ConvolutionSplit:
         out = np.zeros((h, w), np.float32)
         for k in self.kernels:
             (ry, rx), (cy, cx) = k.slices(h, w)
-            at_centres = np.zeros((h, w), np.float32)
-            at_centres[cy, cx] = np.where(k.mask[ry, rx], img[ry, rx], np.float32(0))
-            out += k.spread(at_centres)
+            at_shifted = np.zeros((h, w), np.float32)
+            at_shifted[cy, cx] = np.where(k.mask[ry, rx], img[ry, rx], np.float32(0))
+            out += k.spread(at_shifted)
         if self.rest.size:
             self._add_cols(out.reshape(-1), self.RT @ np.asarray(y, np.float32)[self.rest])
         return out
