@@ -106,6 +106,39 @@ def trim_heap() -> None:
 
 _MALLOC_TRIM: Any = None
 
+#: glibc's ``mallopt`` parameters, and what a worker's heap gets (:func:`reuse_heap`):
+#: blocks under the mmap threshold are reused from the heap, and free memory at its top
+#: is kept up to the trim threshold (the largest values glibc's own dynamic threshold
+#: reaches on 64-bit systems).
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+HEAP_MMAP_THRESHOLD = 32 << 20
+HEAP_TRIM_THRESHOLD = 64 << 20
+
+
+def reuse_heap() -> bool:
+    """Let this process's C heap reuse freed arrays (idempotent; False where the C
+    library has no ``mallopt``).
+
+    A Dask nanny starts its workers with ``MALLOC_TRIM_THRESHOLD_=65536``, which fixes
+    glibc's thresholds at its defaults: every array over 128 kB is then a fresh ``mmap``
+    whose pages fault in on first touch and go back to the system when freed, so numpy's
+    temporaries cost about twice as much as in a process started plainly. The deblur's
+    stages give memory back themselves where it matters (:func:`trim_heap`).
+    """
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if not name:
+        return False
+    try:
+        mallopt = ctypes.CDLL(name).mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(
+        mallopt(M_MMAP_THRESHOLD, HEAP_MMAP_THRESHOLD)
+        and mallopt(M_TRIM_THRESHOLD, HEAP_TRIM_THRESHOLD)
+    )
+
 
 @contextlib.contextmanager
 def opencv_single_threaded() -> Iterator[None]:
@@ -123,7 +156,8 @@ def opencv_single_threaded() -> Iterator[None]:
 
 
 def limit_threads() -> None:
-    """Limit this process to one OpenCV / OpenMP / BLAS / OpenImageIO thread (idempotent).
+    """Limit this process to one OpenCV / OpenMP / BLAS / OpenImageIO thread (idempotent),
+    as a worker: its heap also reuses freed arrays (:func:`reuse_heap`).
 
     OpenImageIO and OpenEXR compress and decompress on their own thread pools: left
     alone, one worker spreads over every core, so N workers would not mean N cores.
@@ -131,6 +165,7 @@ def limit_threads() -> None:
     global _threads_limited
     if _threads_limited:
         return
+    reuse_heap()  # (a worker: see there)
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
     try:

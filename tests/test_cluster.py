@@ -37,3 +37,27 @@ def test_an_embedded_cluster_closes_quietly_and_shows_errors_while_working(capfd
     err = capfd.readouterr().err
     assert "an error logged by a task" in err, err
     assert "Traceback" not in err and "Failed to communicate" not in err, err
+
+
+def test_a_worker_lets_its_heap_reuse_freed_arrays():
+    # A Dask nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536 (every array over
+    # 128 kB a fresh mmap); limit_threads, which every worker task calls first, sets
+    # glibc's thresholds back. (In a child: limit_threads changes the process for good.)
+    import os
+    import platform
+    import subprocess
+    import sys
+
+    import pytest
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc's mallopt")
+    code = (
+        "import stages.cluster as c; calls = []; real = c.reuse_heap;"
+        "c.reuse_heap = lambda: calls.append(1) or real(); c.limit_threads(); c.limit_threads();"
+        "print(len(calls), real())"
+    )
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["1", "True"]
