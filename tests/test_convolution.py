@@ -115,13 +115,17 @@ def test_stacked_bins_normal_product_matches_the_sparse_one():
     assert all(g is None for g in plain.splits)
     n = H * W
     x = np.stack([_rand(6), _rand(7)], 1)
-    for seed in (8, 9):  # two solves' weights: the held weights follow the new ones
-        w = np.random.default_rng(seed).random((len(parts) * n, 2))
+    w = np.random.default_rng(8).random((len(parts) * n, 2))
+    for _ in range(2):  # (then the same array's values changed: weights made anew)
+        split_w = split.split_weights(w)
+        assert plain.split_weights(w) == [None] * len(plain.groups)
         for c in range(2):
             xc = np.ascontiguousarray(x[:, c])
-            got = sum(split.normal_column(g, xc, w, c) for g in range(len(split.groups)))
             want = sum(plain.normal_column(g, xc, w, c) for g in range(len(plain.groups)))
-            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+            for given in (split_w, None):
+                got = sum(split.normal_column(g, xc, w, c, given) for g in range(len(split.groups)))
+                np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+        w *= np.random.default_rng(9).random(w.shape)
 
 
 def test_row_blocks_share_the_matrix_and_sum_to_its_normal_product():

@@ -31,8 +31,8 @@ import scipy.sparse as sp
 #: At most this many kernels per operator (layers, or exposure times of the VET image).
 MAX_KERNELS = 8
 #: Costs in a sparse product's visits of one stored entry (``make bench``'s
-#: ``bench_products``: about 1 ns each), for a kernel to be worth its passes: a pass over
-#: the image (per pixel), and each of a kernel's taps in ``filter2D`` (per pixel).
+#: ``bench_products`` measures both sides), for a kernel to be worth its passes: a pass
+#: over the image (per pixel), and each of a kernel's taps in ``filter2D`` (per pixel).
 PASS_COST = 0.5
 TAP_COST = 0.07
 #: Rows whose stencils are tried as a kernel's, spread over the rows not yet taken.

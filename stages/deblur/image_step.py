@@ -140,6 +140,8 @@ def solve_image(
         # product, the largest, is shared between threads like the bins' groups (as many
         # blocks whatever the threads: the pieces sum in one order, to the same image).
         blocks = row_blocks(A, VET_ROW_BLOCKS)
+    # The bins' weights as their convolutions take them, for the whole solve.
+    bins_w = None if Ab is None else Ab.split_weights(wb)
 
     def vet_column(xc: np.ndarray, k: int, b: int) -> np.ndarray:
         if split is not None:
@@ -161,7 +163,7 @@ def solve_image(
         ]
         if Ab is not None:
             jobs += [
-                (k, pool.submit(Ab.normal_column, g, xs[k], wb, k))
+                (k, pool.submit(Ab.normal_column, g, xs[k], wb, k, bins_w))
                 for k in range(c)
                 for g in range(len(Ab.groups))
             ]

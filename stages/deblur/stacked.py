@@ -90,8 +90,6 @@ class StackedOperator:
             if release:
                 parts[b0 : b0 + len(chunk)] = [None] * len(chunk)
             del chunk
-        #: The row weights as the splits take them, by (group, channel): (``w``, them).
-        self._split_weights: dict[tuple[int, int], tuple[np.ndarray, list]] = {}
         #: The bins' blurs on the VET grid (the groups' stacks, or what a camera's
         #: sampling multiplies): where the motion moves an integration path.
         self.blurs = [g[0] for g in self.groups] if blurs is None else blurs
@@ -118,35 +116,41 @@ class StackedOperator:
             out += MT @ (w[r0:r1] * r[r0:r1]).astype(np.float32, copy=False)
         return out
 
-    def normal_column(self, g: int, xc: np.ndarray, w: np.ndarray, c: int) -> np.ndarray:
+    def split_weights(self, w: np.ndarray) -> list[list[list] | None]:
+        """The row weights ``w`` (B N, C) as the split groups take them: per group, per
+        channel, each part's (:meth:`ConvolutionSplit.weights`); None for a group that is
+        not split. Made once for the products of one ``w`` (:meth:`normal_column`)."""
+        n = self.shape[1]
+        return [
+            None
+            if split is None
+            else [
+                [part.weights(w[r0 + i * n : r0 + (i + 1) * n, c]) for i, part in enumerate(split)]
+                for c in range(w.shape[1])
+            ]
+            for split, (_, _, r0, _) in zip(self.splits, self.groups, strict=True)
+        ]
+
+    def normal_column(
+        self, g: int, xc: np.ndarray, w: np.ndarray, c: int, split_w: list | None = None
+    ) -> np.ndarray:
         """Group ``g``'s share of ``stack.T diag(w) stack @ x`` for channel ``c``:
         ``xc`` that channel of ``x`` (N,) contiguous float32, ``w`` (B N, C); (N,)
-        float32. The pieces of all groups sum to :meth:`normal`'s column ``c``."""
+        float32. The pieces of all groups sum to :meth:`normal`'s column ``c``.
+        ``split_w``: :meth:`split_weights` of ``w`` (made here for a split group if
+        not given)."""
         M, MT, r0, r1 = self.groups[g]
-        if self.splits[g] is not None:
-            return self._split_normal(g, xc, w, c)
+        split = self.splits[g]
+        if split is not None:
+            weights = (split_w or self.split_weights(w))[g][c]
+            out = np.zeros(self.image_shape, np.float32)
+            x = xc.reshape(self.image_shape)
+            for part, pw in zip(split, weights, strict=True):
+                part.normal(x, pw, out)
+            return out.reshape(-1)
         y = M @ xc
         y *= w[r0:r1, c]
         return MT @ y
-
-    def _split_normal(self, g: int, xc: np.ndarray, w: np.ndarray, c: int) -> np.ndarray:
-        """:meth:`normal_column` through group ``g``'s convolutions, their weights made
-        once for each ``w`` (a solve's)."""
-        split = self.splits[g]
-        _, _, r0, _ = self.groups[g]
-        held = self._split_weights.get((g, c))
-        if held is None or held[0] is not w:
-            n = self.shape[1]
-            weights = [
-                part.weights(w[r0 + i * n : r0 + (i + 1) * n, c]) for i, part in enumerate(split)
-            ]
-            held = (w, weights)
-            self._split_weights[(g, c)] = held
-        out = np.zeros(self.image_shape, np.float32)
-        x = xc.reshape(self.image_shape)
-        for part, weights in zip(split, held[1], strict=True):
-            part.normal(x, weights, out)
-        return out.reshape(-1)
 
     def normal(self, x: np.ndarray, w: np.ndarray) -> np.ndarray:
         """``stack.T diag(w) stack @ x`` (``w`` of shape (B N, C)), float64 (N, C).
@@ -155,10 +159,11 @@ class StackedOperator:
         float32 product.
         """
         out = np.zeros((self.shape[1], x.shape[1]))
+        split_w = self.split_weights(w)
         for c in range(x.shape[1]):
             xc = np.ascontiguousarray(x[:, c], np.float32)
             for g in range(len(self.groups)):
-                out[:, c] += self.normal_column(g, xc, w, c)
+                out[:, c] += self.normal_column(g, xc, w, c, split_w)
         return out
 
     def diag_normal(self, w: np.ndarray) -> np.ndarray:
@@ -170,17 +175,25 @@ class StackedOperator:
         return out
 
 
+def _rows(A: sp.csr_matrix, r0: int, r1: int, data: np.ndarray | None = None) -> sp.csr_matrix:
+    """Rows ``r0:r1`` of ``A`` (CSR) sharing its index arrays, with its values or
+    ``data`` (the block's, one per stored entry)."""
+    p0, p1 = int(A.indptr[r0]), int(A.indptr[r1])
+    # (Set on an empty matrix: the constructor copies a view of a much larger array.)
+    B = sp.csr_matrix((int(r1 - r0), A.shape[1]), dtype=A.dtype)
+    B.data = A.data[p0:p1] if data is None else data
+    B.indices = A.indices[p0:p1]
+    B.indptr = (A.indptr[r0 : r1 + 1] - p0).astype(A.indptr.dtype)
+    return B
+
+
 def row_blocks(A: sp.csr_matrix, n: int) -> list[tuple[sp.csr_matrix, sp.spmatrix, int, int]]:
     """``A`` (CSR) in ``n`` blocks of consecutive rows, each ``(block, its transposed
     view, first row, end row)``; the blocks share ``A``'s value and index arrays."""
     bounds = np.linspace(0, A.shape[0], max(1, n) + 1).round().astype(int)
     out = []
     for r0, r1 in zip(bounds[:-1], bounds[1:], strict=True):
-        p0, p1 = int(A.indptr[r0]), int(A.indptr[r1])
-        # (Set on an empty matrix: the constructor copies a view of a much larger array.)
-        B = sp.csr_matrix((int(r1 - r0), A.shape[1]), dtype=A.dtype)
-        B.data, B.indices = A.data[p0:p1], A.indices[p0:p1]
-        B.indptr = (A.indptr[r0 : r1 + 1] - p0).astype(A.indptr.dtype)
+        B = _rows(A, int(r0), int(r1))
         out.append((B, B.T, int(r0), int(r1)))
     return out
 
@@ -200,11 +213,6 @@ def diag_normal(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
     out = np.zeros((n_cols, w.shape[1]))
     for r0 in range(0, n_rows, DIAG_BLOCK_ROWS):
         r1 = min(n_rows, r0 + DIAG_BLOCK_ROWS)
-        p0, p1 = int(A.indptr[r0]), int(A.indptr[r1])
-        blk = sp.csr_matrix(
-            (np.square(A.data[p0:p1]), A.indices[p0:p1], A.indptr[r0 : r1 + 1] - p0),
-            shape=(r1 - r0, n_cols),
-            copy=False,
-        )
+        blk = _rows(A, r0, r1, np.square(A.data[int(A.indptr[r0]) : int(A.indptr[r1])]))
         out += blk.T @ np.asarray(w[r0:r1], np.float32)
     return out
