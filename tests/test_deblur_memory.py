@@ -6,6 +6,7 @@ from __future__ import annotations
 import tracemalloc
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 
 from stages.deblur import stacked
@@ -192,19 +193,30 @@ def test_a_stream_is_fitted_through_unbiased_time_bins():
     assert abs(float(weighted.mean() / yb.mean()) - 1.0) < 0.005
 
 
-def test_release_stream_drops_the_stream_and_changes_nothing():
+@pytest.mark.parametrize(("size", "tile"), [((96, 64), None), ((128, 80), 64)])
+def test_release_stream_drops_the_stream_and_changes_nothing(monkeypatch, size, tile):
     """deblur(..., release_stream=True), as vet deblur calls it, lets go of the capture's
-    measuring stream once it has made the time bins it fits (the stream is then not
-    held through the solve) and gives the same image."""
+    measuring stream once it has made the time bins it fits, in the stream's own memory
+    (the stream and the bins are never both held), in one piece or for tiles, and gives
+    the same image."""
+    import stages.formats.capture as capture_module
     from stages.deblur import deblur
 
-    rig = RigParams(sensor_size=(96, 64))
-    cap = simulate(builtin_interior(96, 64), parse_motion("translate:20,0"), rig, seed=1)["vet"]
+    rig = RigParams(sensor_size=size)
+    cap = simulate(builtin_interior(*size), parse_motion("translate:20,0"), rig, seed=1)["vet"]
     assert cap.keeps_stream
-    kept, _ = deblur(cap, "vet")
+    kept, _ = deblur(cap, "vet", tile=tile)
     assert cap.measure is not None
-    released, _ = deblur(cap, "vet", release_stream=True)
+    made = []
+    in_place = capture_module.sum_bins_in_place
+    monkeypatch.setattr(
+        capture_module,
+        "sum_bins_in_place",
+        lambda box, e: made.append(in_place(box, e)) or made[-1],
+    )
+    released, _ = deblur(cap, "vet", tile=tile, release_stream=True)
     assert cap.measure is None
+    assert len(made) == 1 and made[0] is not None
     np.testing.assert_array_equal(released.radiance, kept.radiance)
 
 

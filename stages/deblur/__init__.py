@@ -389,7 +389,9 @@ def deblur(
             # (stages.deblur.camera_grid); the bins registered onto the VET grid start them.
             from .camera_grid import CameraBins
 
-            binned = recorded.time_bins(n_fit)
+            if release_stream and recorded is not cap:  # (registered: made again from the bins)
+                cap.measure = None
+            binned = recorded.time_bins(n_fit, consume=release_stream)
             tiles_cap = replace(
                 register_measure(binned),
                 ideal_T=cap.ideal_T,
@@ -397,8 +399,11 @@ def deblur(
             )
         elif opts.use_measure and not opts.stream_fit and cap.keeps_stream:
             # The bins each tile would fit, made once: a tile's crop of them is what it
-            # would bin from its crop of the stream, in less memory.
-            tiles_cap = cap.time_bins(n_fit)
+            # would bin from its crop of the stream, in less memory; made in the stream's
+            # memory when the caller lets it go.
+            if release_stream and recorded is not cap:
+                recorded.measure = None
+            tiles_cap = cap.time_bins(n_fit, consume=release_stream)
         if release_stream and tiles_cap.measure is not recorded.measure:
             cap.measure = None
             recorded.measure = None
@@ -440,7 +445,10 @@ def deblur(
         )
         fit_src = recorded
         if opts.use_measure and not opts.stream_fit and recorded.keeps_stream:
-            fit_src = recorded.time_bins(n_fit)  # (the bins the misfit reads, as it bins them)
+            if release_stream and recorded is not cap:
+                cap.measure = None
+            # (the bins the misfit reads, as it bins them; in the stream's memory when let go)
+            fit_src = recorded.time_bins(n_fit, consume=release_stream)
         if release_stream and fit_src.measure is not recorded.measure:
             # The motion and the bins are made: the stream is done with (before the
             # observations are made, so they are never held beside it).

@@ -69,6 +69,51 @@ def measure_bin_edges(n_subframes: int, n_bins: int) -> np.ndarray:
     return np.linspace(0, n_subframes, n_bins + 1).round().astype(int)
 
 
+def sum_bins_in_place(box: list[np.ndarray], edges: np.ndarray) -> np.ndarray | None:
+    """The sums of a stream (F, ...) over its frames ``edges[k]:edges[k + 1]``, float32
+    (B, ...), made in the stream's own memory, which then shrinks to theirs.
+
+    ``box`` is a list holding the stream alone: the function takes it out, so that its
+    reference is the only one. Each bin is summed on the process's threads into a
+    temporary, then copied over the start of the stream, where only frames before
+    ``edges[k + 1]`` lie (read already); ``ndarray.resize`` then hands the rest back to
+    the system (the C library shrinks the block without copying it).
+
+    Returns None, the stream put back in ``box`` untouched, where this cannot be done
+    safely: the stream is a view or not one contiguous block, anything else holds it or
+    a view of it (numpy refuses to resize it then), or it has too few frames per bin
+    for the bins to stay behind the frames still to be read.
+    """
+    stream = box.pop()
+    shape, n_bins = stream.shape, len(edges) - 1
+    plane = int(np.prod(shape[1:], dtype=np.int64))
+    bin_bytes, frame_bytes = plane * 4, plane * stream.itemsize
+    if (
+        n_bins < 1
+        or not stream.flags.owndata
+        or not stream.flags.c_contiguous
+        or (n_bins * bin_bytes) % stream.itemsize
+        or any((k + 1) * bin_bytes > int(edges[k + 1]) * frame_bytes for k in range(n_bins))
+    ):
+        box.append(stream)
+        return None
+    try:  # (numpy resizes only an array nothing else holds: asked before any write)
+        stream.resize(stream.size + 1)
+    except ValueError:
+        box.append(stream)
+        return None
+    frames = stream[:-1].reshape(shape)
+    raw = stream.view(np.uint8)
+    sums = in_order(
+        lambda k, f=frames: np.sum(f[edges[k] : edges[k + 1]], axis=0, dtype=np.float32), n_bins
+    )
+    for k, total in enumerate(sums):
+        raw[k * bin_bytes : (k + 1) * bin_bytes].view(np.float32)[:] = total.reshape(-1)
+    del frames, raw, total, sums  # (no view of the stream is left: it may be resized)
+    stream.resize(n_bins * bin_bytes // stream.itemsize)
+    return stream.view(np.float32).reshape(n_bins, *shape[1:])
+
+
 #: Time bins the motion estimators read of a capture that keeps its whole stream.
 MOTION_BINS = 8
 
@@ -125,26 +170,38 @@ class Capture:
         dur = np.diff(np.asarray(self.measure_times, np.float64), axis=1)[:, 0]
         return bool(np.all(np.rint(dur / self.rig.subframe_s) <= 1))
 
-    def time_bins(self, n_bins: int) -> Capture:
+    def time_bins(self, n_bins: int, consume: bool = False) -> Capture:
         """The capture with its measuring images summed into ``n_bins`` near-equal time
         bins (float32 DN, times ``[start of the first, end of the last)``); itself when it
-        has no more images than that."""
+        has no more images than that.
+
+        ``consume``: the caller needs no more of this capture's measuring images. Its
+        ``measure`` is set to None, and where nothing else holds them the bins are made in
+        their memory (:func:`sum_bins_in_place`): a stream and its bins are then never
+        held side by side."""
         from dataclasses import replace
 
         if self.measure is None or self.measure_times is None or self.measure.shape[0] <= n_bins:
             return self
-        edges = measure_bin_edges(self.measure.shape[0], n_bins)
-        # Filled in place: no list of bins beside their stacked copy.
-        bins = np.empty((len(edges) - 1, *self.measure.shape[1:]), np.float32)
-
-        def fill(k: int) -> None:
-            a, b = edges[k], edges[k + 1]
-            np.sum(self.measure[a:b], axis=0, dtype=np.float32, out=bins[k])
-
-        for _ in in_order(fill, len(bins)):  # (the bins on the process's threads)
-            pass
+        shape = self.measure.shape
+        edges = measure_bin_edges(shape[0], n_bins)
         times = self.bin_times(n_bins)
         n = self.measure_counts()
+        box = [self.measure]
+        bins = None
+        if consume:
+            self.measure = None
+            bins = sum_bins_in_place(box, edges)
+        if bins is None:
+            stream = box.pop()
+            # Filled in place: no list of bins beside their stacked copy.
+            bins = np.empty((len(edges) - 1, *shape[1:]), np.float32)
+
+            def fill(k: int) -> None:
+                np.sum(stream[edges[k] : edges[k + 1]], axis=0, dtype=np.float32, out=bins[k])
+
+            for _ in in_order(fill, len(bins)):  # (the bins on the process's threads)
+                pass
         meta = dict(self.meta)
         meta["measure_subframes"] = [
             int(n[a:b].sum()) for a, b in zip(edges[:-1], edges[1:], strict=True)

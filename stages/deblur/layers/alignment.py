@@ -150,14 +150,20 @@ def interpolation_noise(v: np.ndarray, centres: np.ndarray, h: int, w: int) -> n
     ``sqrt(((1 - fx)**2 + fx**2) ((1 - fy)**2 + fy**2))`` times theirs: 1 at whole-pixel
     shifts, 1/2 half-way between four pixels.
     """
-    yy, xx = _grid(v, h, w)
-    vx, vy = components(v)
+    grid = _grid(v, h, w)
     out = np.empty((len(centres), h, w), np.float32)
     for b, c in enumerate(centres):
-        fx = np.mod(xx + vx * np.float32(c), np.float32(1.0))
-        fy = np.mod(yy + vy * np.float32(c), np.float32(1.0))
-        out[b] = np.sqrt(((1 - fx) ** 2 + fx**2) * ((1 - fy) ** 2 + fy**2))
+        out[b] = _noise_plane(grid, v, c)
     return out
+
+
+def _noise_plane(grid: tuple[np.ndarray, np.ndarray], v: np.ndarray, c: float) -> np.ndarray:
+    """:func:`interpolation_noise` of one bin at time ``c``, on ``grid`` (:func:`_grid`)."""
+    yy, xx = grid
+    vx, vy = components(v)
+    fx = np.mod(xx + vx * np.float32(c), np.float32(1.0))
+    fy = np.mod(yy + vy * np.float32(c), np.float32(1.0))
+    return np.sqrt(((1 - fx) ** 2 + fx**2) * ((1 - fy) ** 2 + fy**2))
 
 
 def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None):
@@ -171,14 +177,35 @@ def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None):
     (B, H, W) bool, if given) are evidence; each other bin counts as a consistent one
     (cost 1, the expectation of a chi-square term), so that a layer gains nothing from
     points it moves off the image or behind another layer. Returns (H, W) float32.
+
+    Only the resampled bins are held whole (their median needs them); their noise and
+    the residuals are made one bin at a time.
     """
+    import cv2
+
     comp = compensated(lv, v, centres)
-    h, w = lv.shape[1:]
-    sig = compensated(slv, v, centres) * interpolation_noise(v, centres, h, w)
+    nb, h, w = lv.shape
     ins = inside(v, centres, h, w)
     if visible is not None:
         ins &= visible
     med = median_where(comp, None if ins.all() else ins)
-    z2 = np.minimum(((comp - med[None]) / sig) ** 2, trunc)
-    cost = np.where(ins, z2, 1.0).mean(axis=0)
-    return cost.astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)  # (the maps of compensated)
+    grid = _grid(v, h, w)
+    vx, vy = components(v)
+    cost = None
+    for b, c in enumerate(centres):
+        c32 = np.float32(c)
+        sig = cv2.remap(
+            slv[b], xx + vx * c32, yy + vy * c32, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+        sig *= _noise_plane(grid, v, c)
+        z2 = comp[b] - med
+        z2 /= sig
+        z2 *= z2
+        np.minimum(z2, np.float32(trunc), out=z2)
+        z2 = np.where(ins[b], z2, np.float32(1.0))
+        if cost is None:
+            cost = z2
+        else:
+            cost += z2
+    return np.true_divide(cost, nb, out=cost, casting="unsafe")

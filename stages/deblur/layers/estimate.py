@@ -69,6 +69,7 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
     conf_raw = np.median(wts, axis=0) * ok
     conf = conf * ok
     modes = velocity_modes(votes, wts * ok[None])
+    del votes, wts  # (their modes are all the rest reads: not held through the search)
     # Candidates: zero plus each mode (in working-grid px/s), refined on its voters.
     cands: list[np.ndarray] = [np.zeros(2)]
     sel = conf > np.percentile(conf, 50)
