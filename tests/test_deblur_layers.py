@@ -380,6 +380,29 @@ def test_the_layer_cost_of_noise_does_not_depend_on_the_shift(shift):
     assert moved == pytest.approx(still, rel=0.06)
 
 
+@pytest.mark.parametrize("row", [4096, 37])
+def test_the_layer_cost_at_points_is_the_maps_there(monkeypatch, row):
+    # The cost of some points alone (a velocity search reads only its weighted points)
+    # is the whole map's at those points, to the bit: points near the border whose
+    # paths leave the image in some bins, points laid out over several rows of maps.
+    from stages.deblur.layers import alignment
+    from stages.deblur.layers.alignment import layer_cost
+
+    monkeypatch.setattr(alignment, "POINT_ROW", row)
+    rng = np.random.default_rng(3)
+    lv = rng.normal(0.0, 1.0, (9, 40, 56)).astype(np.float32)
+    slv = rng.uniform(0.05, 0.2, lv.shape).astype(np.float32)
+    centres = np.linspace(0.05, 0.95, 9)
+    pick = rng.random((40, 56)) < 0.4
+    pick[0, :] = pick[:, -1] = True
+    ys, xs = np.nonzero(pick)
+    for v in (np.array([9.3, -2.7]), np.array([-31.0, 12.5]), np.zeros(2)):
+        whole = layer_cost(lv, slv, v, centres, trunc=25.0)
+        at = layer_cost(lv, slv, v, centres, trunc=25.0, points=(ys, xs))
+        assert at.shape == ys.shape
+        np.testing.assert_array_equal(at, whole[ys, xs])
+
+
 def test_deblur_of_a_rotation_leaves_the_layers_and_beats_hdr_static():
     # The layered start of a rotation is the one translation that fits best; deblurring
     # along it was worse than not deblurring (dark RMS over the pixels vet evaluate

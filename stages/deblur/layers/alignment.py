@@ -6,22 +6,28 @@ import numpy as np
 
 
 def compensated(
-    lv: np.ndarray, v: np.ndarray, centres: np.ndarray, nearest: bool = False
+    lv: np.ndarray,
+    v: np.ndarray,
+    centres: np.ndarray,
+    nearest: bool = False,
+    at: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Bins resampled at ``y + v c_b`` (the scene point ``y`` of t = 0 in each bin).
 
     ``v`` is one velocity (2,) or a field of them (H, W, 2), px/s. ``nearest``: no
     interpolation, so the noise of the resampled bins does not depend on ``v`` (bilinear
     interpolation averages noise down at fractional shifts, which would favour moving
-    layers in noise-dominated regions).
+    layers in noise-dominated regions). ``at``: the points ``y`` as float32 coordinates
+    ``(yy, xx)`` of one shape (of :func:`point_grid`'s; one velocity), each resampled as on
+    the whole grid; by default every pixel, (B, H, W).
     """
     import cv2
 
     interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
     nb, h, w = lv.shape
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32) if at is None else at
     vx, vy = components(v)
-    out = np.empty_like(lv)
+    out = np.empty((nb, *yy.shape), lv.dtype)
     for b in range(nb):
         out[b] = cv2.remap(
             lv[b],
@@ -49,6 +55,20 @@ def _grid(v: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
         np.arange(h, dtype=np.float32).reshape(h, 1),
         np.arange(w, dtype=np.float32).reshape(1, w),
     )
+
+
+#: Points per row of :func:`point_grid` (OpenCV's remap takes maps under 32767 a side).
+POINT_ROW = 4096
+
+
+def point_grid(ys: np.ndarray, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points ``(ys, xs)`` (P,) as index maps of shape (R, :data:`POINT_ROW`) or
+    (1, P), in order, padded with the last point."""
+    p = ys.size
+    cols = min(p, POINT_ROW)
+    rows = -(-p // cols)
+    pad = rows * cols - p
+    return tuple(np.concatenate([a, np.repeat(a[-1:], pad)]).reshape(rows, cols) for a in (ys, xs))
 
 
 def median_where(a: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
@@ -157,16 +177,21 @@ def interpolation_noise(v: np.ndarray, centres: np.ndarray, h: int, w: int) -> n
     return out
 
 
-def _noise_plane(grid: tuple[np.ndarray, np.ndarray], v: np.ndarray, c: float) -> np.ndarray:
-    """:func:`interpolation_noise` of one bin at time ``c``, on ``grid`` (:func:`_grid`)."""
+def _noise_plane(grid: tuple[np.ndarray, np.ndarray], v: np.ndarray, c: float, sel=None):
+    """:func:`interpolation_noise` of one bin at time ``c``, on ``grid`` (:func:`_grid`);
+    ``sel``: at those indices alone (one velocity: its row and column factors read
+    there)."""
     yy, xx = grid
     vx, vy = components(v)
     fx = np.mod(xx + vx * np.float32(c), np.float32(1.0))
     fy = np.mod(yy + vy * np.float32(c), np.float32(1.0))
-    return np.sqrt(((1 - fx) ** 2 + fx**2) * ((1 - fy) ** 2 + fy**2))
+    gx, gy = (1 - fx) ** 2 + fx**2, (1 - fy) ** 2 + fy**2
+    if sel is not None:
+        gy, gx = gy[sel[0], 0], gx[0, sel[1]]
+    return np.sqrt(gx * gy)
 
 
-def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None):
+def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None, points=None):
     """Per-point truncated chi-square of the compensated bins about their median, per bin.
 
     The bins are resampled bilinearly (a sharp edge moving a fractional number of pixels
@@ -178,18 +203,29 @@ def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None):
     (cost 1, the expectation of a chi-square term), so that a layer gains nothing from
     points it moves off the image or behind another layer. Returns (H, W) float32.
 
+    ``points``: ``(ys, xs)`` integer arrays (P,) with one velocity ``v``: the cost at
+    those points alone, (P,), the same numbers as at those pixels of the whole map (each
+    point's cost is its own).
+
     Only the resampled bins are held whole (their median needs them); their noise and
     the residuals are made one bin at a time.
     """
     import cv2
 
-    comp = compensated(lv, v, centres)
     nb, h, w = lv.shape
+    if points is None:
+        at = sel = None
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)  # (compensated's maps)
+    else:  # (what depends on the row or column alone: made for all, read at the points)
+        sel = point_grid(*points)
+        yy, xx = at = tuple(a.astype(np.float32) for a in sel)
+    comp = compensated(lv, v, centres, at=at)
     ins = inside(v, centres, h, w)
+    if sel is not None:
+        ins = ins[:, sel[0], sel[1]]
     if visible is not None:
         ins &= visible
     med = median_where(comp, None if ins.all() else ins)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)  # (the maps of compensated)
     grid = _grid(v, h, w)
     vx, vy = components(v)
     cost = None
@@ -198,7 +234,7 @@ def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None):
         sig = cv2.remap(
             slv[b], xx + vx * c32, yy + vy * c32, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
         )
-        sig *= _noise_plane(grid, v, c)
+        sig *= _noise_plane(grid, v, c, sel)
         z2 = comp[b] - med
         z2 /= sig
         z2 *= z2
@@ -208,4 +244,5 @@ def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None):
             cost = z2
         else:
             cost += z2
-    return np.true_divide(cost, nb, out=cost, casting="unsafe")
+    cost = np.true_divide(cost, nb, out=cost, casting="unsafe")
+    return cost if points is None else cost.reshape(-1)[: points[0].size]

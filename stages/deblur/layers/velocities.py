@@ -22,7 +22,8 @@ def refine_velocity(
     The cost (:func:`layer_cost`, averaged with ``weight``) is evaluated on the 3 x 3
     neighbours of the current velocity at each step size, moving to the best until the
     centre is best (at most ``max_moves`` moves), then halving the step. Only the
-    bounding box of the weighted points is resampled.
+    weighted points are resampled, in the bounding box of them (and their paths) cut
+    out of the bins.
     """
     v = np.asarray(v0, np.float64)
     if weight.sum() <= 0:
@@ -34,6 +35,9 @@ def refine_velocity(
     x0, x1 = max(0, xs.min() - pad), min(w, xs.max() + pad + 1)
     lv_c, slv_c, wt_c = lv[:, y0:y1, x0:x1], slv[:, y0:y1, x0:x1], weight[y0:y1, x0:x1]
     total = float(wt_c.sum())
+    # The cost at the weighted points alone (each point's is its own).
+    points = np.nonzero(wt_c > 0)
+    wt_p = wt_c[points]
     cache: dict[tuple[float, float], float] = {}
 
     def key(c: np.ndarray) -> tuple[float, float]:
@@ -45,7 +49,8 @@ def refine_velocity(
 
         def one(i: int) -> float:
             c = todo[i]
-            return float((layer_cost(lv_c, slv_c, c, centres, trunc=25.0) * wt_c).sum() / total)
+            cost = layer_cost(lv_c, slv_c, c, centres, trunc=25.0, points=points)
+            return float((cost * wt_p).sum() / total)
 
         for c, val in zip(todo, in_order(one, len(todo)), strict=True):
             cache[key(c)] = val
