@@ -166,6 +166,7 @@ class ConvolutionSplit:
     masks ``m_k`` and ``R``, the rows no kernel takes (CSR). Build it with :meth:`of`."""
 
     def __init__(self, shape: tuple[int, int], kernels: list[_Kernel], rest: np.ndarray, M):
+        """``M``: the operator, or any (N, N) CSR matrix whose rows ``rest`` are its."""
         self.shape = shape
         self.kernels = kernels
         #: The rows no kernel takes (rows with no entries left out), and their matrix,
@@ -226,9 +227,18 @@ class ConvolutionSplit:
         """The split of a matrix whose rows' stencils its assembly knows
         (:class:`~stages.deblur.operator.Stencils`): the largest groups, each where it
         is worth its passes (:func:`_worth`), are the kernels."""
+        return cls.of_plan(np.diff(M.indptr), st, shape, lambda _left: M)
+
+    @classmethod
+    def of_plan(
+        cls, nnz: np.ndarray, st, shape: tuple[int, int], rest_rows
+    ) -> ConvolutionSplit | None:
+        """The split of an operator from its assembly's plan alone, its matrix never made:
+        ``nnz`` (N,) its entries per row, ``st`` its :class:`~stages.deblur.operator.Stencils`,
+        ``rest_rows(left)`` an (N, N) CSR matrix holding at least the generic rows and the
+        stencil rows ``st.rows[left]`` (bool) no kernel takes. None as :meth:`of`."""
         h, w = shape
         n = h * w
-        nnz = np.diff(M.indptr)
         label = np.full(n, -1, np.int8)
         label[nnz == 0] = -2
         sizes = np.bincount(st.group, minlength=len(st.reps))
@@ -250,7 +260,7 @@ class ConvolutionSplit:
             kernels.append(_Kernel(small, shift, (label == len(kernels)).reshape(h, w)))
         if not kernels or np.count_nonzero(label >= 0) < MIN_SPLIT_SHARE * np.count_nonzero(nnz):
             return None
-        return cls(shape, kernels, np.flatnonzero(label == -1), M)
+        return cls(shape, kernels, np.flatnonzero(label == -1), rest_rows(label[st.rows] == -1))
 
     def _cols(self, x: np.ndarray) -> np.ndarray:
         """The columns of ``x`` (N,) the other rows read."""
@@ -299,6 +309,44 @@ class ConvolutionSplit:
             v = self.R @ self._cols(x.reshape(-1))
             v *= weights[-1]
             self._add_cols(out.reshape(-1), self.RT @ v)
+
+    def diag_normal(self, wt: np.ndarray) -> np.ndarray:
+        """The diagonal of ``M.T diag(wt) M``, ``sum_r wt_r M_rc^2``, for ``wt`` (N,);
+        (N,) float64. A kernel's rows spread their weights, put at their pixels moved by
+        its shift, over its squared taps."""
+        h, w = self.shape
+        out = np.zeros((h, w), np.float32)
+        img = np.asarray(wt, np.float32).reshape(h, w)
+        for k in self.kernels:
+            (ry, rx), (cy, cx) = k.slices(h, w)
+            mw = np.zeros((h, w), np.float32)
+            mw[cy, cx] = np.where(k.mask[ry, rx], img[ry, rx], np.float32(0))
+            sq = _Kernel(np.square(k.small), k.shift, k.mask)
+            out += mw * np.float32(k.tap * k.tap) if k.tap is not None else sq.spread(mw)
+        diag = out.reshape(-1).astype(np.float64)
+        if self.rest.size:
+            R2 = sp.csr_matrix(
+                (np.square(self.R.data), self.R.indices, self.R.indptr), self.R.shape
+            )
+            self._add_cols(diag, R2.T @ np.asarray(wt, np.float32)[self.rest])
+        return diag
+
+    def moving_reach(self) -> np.ndarray:
+        """The pixels that a row reading more than its own pixel reads, bool (N,) (what
+        :func:`~stages.deblur.operator.static_rows` leaves, as
+        :func:`~stages.deblur.still_pixels.moving_support` takes it)."""
+        h, w = self.shape
+        moving = np.zeros(h * w, np.float32)
+        for k in self.kernels:
+            if not (k.tap is not None and k.shift == (0, 0)):
+                moving[k.mask.reshape(-1)] = 1.0
+        if self.rest.size and self.R.nnz:
+            R = self.R
+            cnt = np.diff(R.indptr)
+            col = R.indices[np.minimum(R.indptr[:-1], R.nnz - 1)]  # (a row's first entry)
+            col = col if self.cols is None else self.cols[col]
+            moving[self.rest] = (cnt > 1) | ((cnt == 1) & (col != self.rest))
+        return self.adjoint(moving).reshape(-1) != 0
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """``M @ x`` for ``x`` (H, W) float32; (H W,) float32."""

@@ -58,6 +58,7 @@ from .assembly import (
     stencil_groups,
     sum_rows,
 )
+from .convolution import ConvolutionSplit
 
 #: A velocity field with at most this many distinct values is read as layers.
 MAX_LAYERS = 8
@@ -171,7 +172,8 @@ def blur_matrix(
     max_samples: int = 64,
     min_dt: float | None = None,
     layers: Layers | None | str = "read",
-) -> sp.csr_matrix:
+    split_shape: tuple[int, int] | None = None,
+) -> sp.csr_matrix | ConvolutionSplit:
     """Assemble the blur operator for one image as a sparse matrix.
 
     Parameters
@@ -191,11 +193,17 @@ def blur_matrix(
         ``motion_layers(velocity)`` when the caller has it (several operators of one
         motion); by default it is read here.
 
+    split_shape : (H, W), optional
+        The image's shape, to return the operator as shifted convolutions and the rows
+        they miss (:class:`~stages.deblur.convolution.ConvolutionSplit`) where its
+        assembly's plan has kernels worth it: only those other rows are assembled, the
+        matrix is never made. Otherwise, and by default, the matrix.
+
     Returns
     -------
     scipy.sparse.csr_matrix of shape (H W, H W), float32
         ``y = A @ L0.ravel()`` gives the model's electrons for each pixel when ``L0`` is
-        in electrons per second.
+        in electrons per second (or its split, with ``split_shape``).
     """
     h, w = velocity.shape[:2]
     n = h * w
@@ -246,14 +254,26 @@ def blur_matrix(
             del parts
             if not g_parts:
                 g_parts = [np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, np.int64)]
-            M = expand_stencils(
-                n,
-                (g_rows, g_parts[2], g_parts[0], g_parts[1]),
-                (s_rows, s_gid, reps, r_counts, r_cols, r_vals),
-            )
+            generic = (g_rows, g_parts[2], g_parts[0], g_parts[1])
             # (What the matrix is made of, for its split into convolutions:
             # stages.deblur.convolution.)
-            M.stencils = Stencils(s_rows, s_gid, reps, r_counts, r_cols, r_vals)
+            stencils = Stencils(s_rows, s_gid, reps, r_counts, r_cols, r_vals)
+            if split_shape is not None:
+                nnz = np.zeros(n, np.int64)
+                nnz[g_rows] = g_parts[2]
+                nnz[s_rows] = r_counts[s_gid]
+                split = ConvolutionSplit.of_plan(
+                    nnz,
+                    stencils,
+                    split_shape,
+                    lambda left: expand_stencils(
+                        n, generic, (s_rows[left], s_gid[left], reps, r_counts, r_cols, r_vals)
+                    ),
+                )
+                if split is not None:
+                    return split
+            M = expand_stencils(n, generic, (s_rows, s_gid, reps, r_counts, r_cols, r_vals))
+            M.stencils = stencils
             return M
     # Row by row, in chunks of pixels. The index and value arrays grow geometrically, a
     # few large blocks (not one small part per chunk kept alive among the chunks'
@@ -402,6 +422,16 @@ def static_rows(A: sp.csr_matrix) -> np.ndarray:
     cols[one] = A.indices[A.indptr[:-1][one]]
     out |= one & (cols == rows % A.shape[1])
     return out
+
+
+def moving_reach(A: sp.csr_matrix) -> np.ndarray:
+    """The columns (pixels) that the rows of ``A`` reading more than their own pixel read,
+    bool (N,) (the stored values are positive weights: a column is reached exactly where
+    this product is non-zero, with no per-non-zero temporary)."""
+    moving = ~static_rows(A)
+    if not moving.any():
+        return np.zeros(A.shape[1], bool)
+    return np.asarray(A.T @ moving.astype(np.float32)) != 0
 
 
 def apply(A: sp.csr_matrix, image: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from ..cluster import solve_threads
 from ..formats.capture import Capture
 from ..physics import bin_may_clip
 from .convolution import ConvolutionSplit
@@ -339,14 +340,31 @@ def build_operators(
         return A, None
     shape = obs.shape[:2] if obs.sampling is None else None
 
-    def one_bin(wins):
-        M = blur_matrix(velocity, wins, step_px=step_px_bins, min_dt=subframe_s, layers=layers)
+    def one_bin(wins, split=True):
+        # A bin's operator as convolutions, its matrix never made, where its assembly's
+        # plan allows; else the matrix and, found among its rows, its split.
+        M = blur_matrix(
+            velocity,
+            wins,
+            step_px=step_px_bins,
+            min_dt=subframe_s,
+            layers=layers,
+            split_shape=shape if split else None,
+        )
+        if isinstance(M, ConvolutionSplit):
+            return M, M
         return M, None if shape is None else ConvolutionSplit.of(M, shape)
 
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    with ThreadPoolExecutor(max_workers=min(2, solve_threads())) as pool:
         made = list(pool.map(one_bin, obs.windows_b))
-    if not made:
-        return A, None
+        if not made:
+            return A, None
+        lean = [m for m, _ in made if isinstance(m, ConvolutionSplit)]
+        if lean and len(lean) == len(made):  # (every bin as convolutions: no matrix held)
+            return A, StackedOperator(lean)
+        del lean
+        if any(isinstance(m, ConvolutionSplit) for m, _ in made):  # (rarely: matrices for all)
+            made = list(pool.map(lambda wins: one_bin(wins, split=False), obs.windows_b))
     mats, splits = [m for m, _ in made], [s for _, s in made]
     del made
     if obs.sampling is None:

@@ -55,19 +55,27 @@ class StackedOperator:
 
     def __init__(
         self,
-        parts: list[sp.csr_matrix],
+        parts: list[sp.csr_matrix] | list[ConvolutionSplit],
         blurs: list[sp.csr_matrix] | None = None,
         image_shape: tuple[int, int] | None = None,
         splits: list[ConvolutionSplit | None] | None = None,
         release: bool = False,
     ):
-        """``parts``: the bins' (N, N) operators; ``image_shape`` (H, W): split them into
+        """``parts``: the bins' (N, N) operators, or their splits alone
+        (:class:`ConvolutionSplit`, every one: no matrix is then held, and the products
+        all go through them); ``image_shape`` (H, W): split the matrices into
         convolutions (``splits``: their splits, when the caller has them);
         ``release``: set each of ``parts`` to None once stacked (the caller holds no
         other reference), so that a part and its group's stack are not both held."""
-        self.rows = parts[0].shape[0]
+        #: The bins' operators as their splits alone (no group holds a matrix), or None.
+        self.parts = None
+        if parts and all(isinstance(p, ConvolutionSplit) for p in parts):
+            self.parts = list(parts)
+            image_shape, splits = parts[0].shape, self.parts
+        n, cols = (image_shape[0] * image_shape[1],) * 2 if self.parts else parts[0].shape
+        self.rows = n
         self.image_shape = image_shape
-        self.shape = (self.rows * len(parts), parts[0].shape[1])
+        self.shape = (n * len(parts), cols)
         if image_shape is not None and splits is None:
             from ..cluster import in_order  # (numpy's passes release the GIL: on the threads)
 
@@ -83,8 +91,13 @@ class StackedOperator:
         self.splits: list[list[ConvolutionSplit] | None] = []
         for b0 in range(0, len(parts), step):
             chunk = parts[b0 : b0 + step]
+            r0, r1 = b0 * n, (b0 + len(chunk)) * n
+            if self.parts is not None:
+                self.groups.append((None, None, r0, r1))
+                self.splits.append(chunk)
+                continue
             M = chunk[0].tocsr() if len(chunk) == 1 else sp.vstack(chunk, format="csr")
-            self.groups.append((M, M.T, b0 * self.rows, b0 * self.rows + M.shape[0]))
+            self.groups.append((M, M.T, r0, r1))
             split = None if image_shape is None else splits[b0 : b0 + len(chunk)]
             self.splits.append(None if split is None or None in split else split)
             if release:
@@ -92,18 +105,38 @@ class StackedOperator:
             del chunk
         #: The bins' blurs on the VET grid (the groups' stacks, or what a camera's
         #: sampling multiplies): where the motion moves an integration path.
-        self.blurs = [g[0] for g in self.groups] if blurs is None else blurs
+        self.blurs = [g[0] for g in self.groups if g[0] is not None] if blurs is None else blurs
+
+    def moving_reach(self) -> np.ndarray:
+        """The pixels some bin's moving integration path reads, bool (N,) (see
+        :func:`~stages.deblur.still_pixels.moving_support`)."""
+        from .operator import moving_reach
+
+        out = np.zeros(self.shape[1], bool)
+        for M in self.parts if self.parts is not None else self.blurs:
+            out |= M.moving_reach() if self.parts is not None else moving_reach(M)
+        return out
 
     def mv(self, x: np.ndarray) -> np.ndarray:
         """``stack @ x`` for ``x`` of shape (N, C), float32 result (B N, C)."""
         x32 = np.asarray(x, np.float32)
         out = np.empty((self.shape[0], x.shape[1]), np.float32)
+        if self.parts is not None:
+            n = self.rows
+            for i, part in enumerate(self.parts):
+                for c in range(x.shape[1]):
+                    out[i * n : (i + 1) * n, c] = part.apply(
+                        np.ascontiguousarray(x32[:, c]).reshape(self.image_shape)
+                    )
+            return out
         for M, _, r0, r1 in self.groups:
             out[r0:r1] = product(M, x32)
         return out
 
     def mvt(self, r: np.ndarray) -> np.ndarray:
         """``stack.T @ r`` for ``r`` of shape (B N, C), float64 result (N, C)."""
+        if self.parts is not None:
+            return self._adjoint(r)
         out = np.zeros((self.shape[1], r.shape[1]))
         for _, MT, r0, r1 in self.groups:
             out += MT @ np.asarray(r[r0:r1], np.float32)
@@ -111,9 +144,22 @@ class StackedOperator:
 
     def mvt_weighted(self, w: np.ndarray, r: np.ndarray) -> np.ndarray:
         """``stack.T @ (w * r)`` (both (B N, C)) group by group, float64 (N, C)."""
+        if self.parts is not None:
+            return self._adjoint(r, w)
         out = np.zeros((self.shape[1], r.shape[1]))
         for _, MT, r0, r1 in self.groups:
             out += MT @ (w[r0:r1] * r[r0:r1]).astype(np.float32, copy=False)
+        return out
+
+    def _adjoint(self, r: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+        """``stack.T @ (w * r)`` through the parts' splits, a part and channel at a time."""
+        n = self.rows
+        out = np.zeros((n, r.shape[1]))
+        for i, part in enumerate(self.parts):
+            for c in range(r.shape[1]):
+                y = r[i * n : (i + 1) * n, c]
+                y = y if w is None else w[i * n : (i + 1) * n, c] * y
+                out[:, c] += part.adjoint(np.asarray(y, np.float32)).reshape(-1)
         return out
 
     def split_weights(self, w: np.ndarray) -> list[list[list] | None]:
@@ -168,6 +214,13 @@ class StackedOperator:
 
     def diag_normal(self, w: np.ndarray) -> np.ndarray:
         """Diagonal of ``stack.T diag(w) stack`` (w of shape (B N, C))."""
+        if self.parts is not None:
+            n = self.rows
+            out = np.zeros((n, w.shape[1]))
+            for i, part in enumerate(self.parts):
+                for c in range(w.shape[1]):
+                    out[:, c] += part.diag_normal(w[i * n : (i + 1) * n, c])
+            return out
         out = None
         for M, _, r0, r1 in self.groups:
             part = diag_normal(M, w[r0:r1])

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .operator import static_rows
+from .operator import moving_reach
 from .problem import Observations
 from .stacked import StackedOperator, product
 from .stream import StreamTerm
@@ -22,14 +22,9 @@ def moving_support(
     or :func:`fuse_still`'s from all of it; see ``JointOptions.fuse_still``). Only the
     pixels that a moving path touches (the columns of the other rows) are re-estimated.
     """
-    n = A.shape[1]
-    free = np.zeros(n, bool)
-    for M in [A] + (Ab.blurs if Ab is not None else []):
-        moving = ~static_rows(M)
-        if moving.any():
-            # The stored values are positive weights: a column is reached by a moving
-            # row exactly where this product is non-zero (no per-non-zero temporary).
-            free |= np.asarray(M.T @ moving.astype(np.float32)) != 0
+    free = moving_reach(A)
+    if Ab is not None:
+        free |= Ab.moving_reach()
     if S is not None:  # the stream's rows see their neighbours where their kernel spreads
         free |= S.reached(S.moving())
     return free
