@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -46,6 +47,12 @@ CLOSE_TIMEOUT_S = 30.0
 SHUTDOWN_LOGGERS = ("distributed", "tornado", "asyncio")
 
 _threads_limited = False
+#: Per-thread state (:func:`one_thread_here`).
+_local = threading.local()
+#: Blocks of :func:`opencv_single_threaded` open at once, and the setting they restore.
+_cv_lock = threading.Lock()
+_cv_depth = 0
+_cv_before = 1
 
 
 #: The most threads a solve's products use in a process that is not limited.
@@ -54,21 +61,35 @@ MAX_SOLVE_THREADS = 4
 
 def solve_threads() -> int:
     """Threads the deblur's products may use in this process: one in a limited worker
-    (:func:`limit_threads`, or ``OMP_NUM_THREADS=1`` set by whoever started it), else
-    the cores, at most :data:`MAX_SOLVE_THREADS`."""
-    if _threads_limited or os.environ.get("OMP_NUM_THREADS") == "1":
+    (:func:`limit_threads`, or ``OMP_NUM_THREADS=1`` set by whoever started it) or on a
+    thread inside :func:`one_thread_here`, else the cores, at most
+    :data:`MAX_SOLVE_THREADS`."""
+    if _threads_limited or os.environ.get("OMP_NUM_THREADS") == "1" or _local.__dict__.get("one"):
         return 1
     return max(1, min(MAX_SOLVE_THREADS, os.cpu_count() or 1))
 
 
-def in_order(fn: Callable[[int], T], n: int, ahead: int = 1) -> Iterator[T]:
+@contextlib.contextmanager
+def one_thread_here() -> Iterator[None]:
+    """:func:`solve_threads` is 1 on the calling thread inside the block: for work that
+    runs beside other such work on a pool that already shares the cores."""
+    _local.one = True
+    try:
+        yield
+    finally:
+        _local.one = False
+
+
+def in_order(
+    fn: Callable[[int], T], n: int, ahead: int = 1, most: int | None = None
+) -> Iterator[T]:
     """``fn(0), ..., fn(n - 1)``, handed out in that order, computed on
-    :func:`solve_threads` threads with at most ``ahead`` calls per thread running or done
-    beyond the one handed out (numpy, OpenCV and zlib release the GIL on large arrays, so
-    independent pieces of work, such as a stream's time bins, share the cores; few are
-    held at once). Inline when one thread is allowed. The threads' freed memory is handed
-    back once all are done (:func:`trim_heap`)."""
-    threads = min(solve_threads(), n)
+    :func:`solve_threads` threads (at most ``most``) with at most ``ahead`` calls per
+    thread running or done beyond the one handed out (numpy, OpenCV and zlib release the
+    GIL on large arrays, so independent pieces of work, such as a stream's time bins,
+    share the cores; few are held at once). Inline when one thread is allowed. The
+    threads' freed memory is handed back once all are done (:func:`trim_heap`)."""
+    threads = min(solve_threads(), n, most or n)
     if threads <= 1:
         yield from (fn(k) for k in range(n))
         return
@@ -142,17 +163,25 @@ def reuse_heap() -> bool:
 
 @contextlib.contextmanager
 def opencv_single_threaded() -> Iterator[None]:
-    """OpenCV on one thread inside the block (the process's setting restored after): for
-    OpenCV calls made on threads of a pool that already shares the cores, whose own
-    threads would only contend with it."""
+    """OpenCV on one thread inside the block (the process's setting restored after the
+    last of such blocks open at once, on any thread, is left): for OpenCV calls made on
+    threads of a pool that already shares the cores, whose own threads would only
+    contend with it."""
     import cv2
 
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(1)
+    global _cv_depth, _cv_before
+    with _cv_lock:
+        if _cv_depth == 0:
+            _cv_before = cv2.getNumThreads()
+            cv2.setNumThreads(1)
+        _cv_depth += 1
     try:
         yield
     finally:
-        cv2.setNumThreads(before)
+        with _cv_lock:
+            _cv_depth -= 1
+            if _cv_depth == 0:
+                cv2.setNumThreads(_cv_before)
 
 
 def limit_threads() -> None:

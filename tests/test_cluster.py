@@ -61,3 +61,35 @@ def test_a_worker_lets_its_heap_reuse_freed_arrays():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["1", "True"]
+
+
+def test_one_thread_here_and_opencv_on_one_thread_from_several_threads():
+    # solve_threads() is 1 on a thread inside one_thread_here, not on the others; OpenCV's
+    # thread count is 1 while any thread is inside opencv_single_threaded, and the
+    # process's setting comes back when the last one leaves, in whatever order they do.
+    import threading
+
+    import cv2
+
+    from stages import cluster
+
+    before = cv2.getNumThreads()
+    inside, leave_first, seen = threading.Event(), threading.Event(), {}
+
+    def first():
+        with cluster.one_thread_here(), cluster.opencv_single_threaded():
+            seen["first"] = cluster.solve_threads()
+            inside.set()
+            leave_first.wait(10)
+
+    t = threading.Thread(target=first)
+    t.start()
+    assert inside.wait(10)
+    seen["main"] = cluster.solve_threads()
+    with cluster.opencv_single_threaded():
+        leave_first.set()
+        t.join(10)
+        assert cv2.getNumThreads() == 1  # (the first thread left; this block has not)
+    assert cv2.getNumThreads() == before
+    assert seen["first"] == 1
+    assert seen["main"] == cluster.solve_threads()

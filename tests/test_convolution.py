@@ -209,3 +209,89 @@ def test_opencv_single_threaded_restores_the_thread_count():
     with opencv_single_threaded():
         assert cv2.getNumThreads() == 1
     assert cv2.getNumThreads() == before
+
+
+@pytest.mark.parametrize("vel", [_translate(), _translate((-17.0, 9.5)), _translate((0.0, 0.0))])
+def test_a_bins_split_made_from_its_plan_is_the_matrix_split(vel):
+    # With the image's shape, a bin's operator comes as its split, the matrix never made:
+    # the same kernels, the same other rows, the same products as the split of the matrix.
+    M = _bin(vel)
+    want = ConvolutionSplit.of(M, (H, W))
+    got = blur_matrix(vel, [Window(0.3, 0.4, 1.0)], step_px=0.5, split_shape=(H, W))
+    assert isinstance(got, ConvolutionSplit) and want is not None
+    np.testing.assert_array_equal(got.rest, want.rest)
+    assert (got.R != want.R).nnz == 0
+    assert [k.shift for k in got.kernels] == [k.shift for k in want.kernels]
+    x, y = _rand(10), _rand(11)
+    np.testing.assert_array_equal(got.apply(x.reshape(H, W)), want.apply(x.reshape(H, W)))
+    np.testing.assert_array_equal(got.adjoint(y), want.adjoint(y))
+
+
+def test_layers_without_a_plan_still_come_as_a_matrix():
+    M = blur_matrix(_object(), [Window(0.3, 0.4, 1.0)], step_px=0.5, split_shape=(H, W))
+    assert sp.issparse(M)
+
+
+@pytest.mark.parametrize("vel", [_translate(), _object(), _translate((20.0, -10.0))])
+def test_the_splits_normal_diagonal_and_moving_reach_are_the_matrix_ones(vel):
+    from stages.deblur.operator import moving_reach
+    from stages.deblur.stacked import diag_normal
+
+    M = _bin(vel, 0.2, 0.26)
+    S = ConvolutionSplit.of(M, (H, W))
+    assert S is not None
+    wt = _rand(12)
+    want = diag_normal(M, wt.reshape(-1, 1))[:, 0]
+    np.testing.assert_allclose(S.diag_normal(wt), want, rtol=1e-5, atol=1e-9)
+    np.testing.assert_array_equal(S.moving_reach(), moving_reach(M))
+
+
+def test_a_stack_of_splits_alone_gives_the_stacked_matrices_products():
+    # The bins held as splits alone (no matrix) give every product the solve takes.
+    vel = _translate((-17.0, 9.5))
+    wins = [(t, t + 0.06) for t in np.arange(0.0, 0.6, 0.06)]
+    mats = [_bin(vel, a, b) for a, b in wins]
+    splits = [
+        blur_matrix(vel, [Window(a, b, 1.0)], step_px=0.5, split_shape=(H, W)) for a, b in wins
+    ]
+    lean, plain = StackedOperator(splits), StackedOperator(mats)
+    assert lean.parts is not None and all(g[0] is None for g in lean.groups)
+    assert lean.shape == plain.shape and len(lean.groups) == len(plain.groups)
+    n = H * W
+    rng = np.random.default_rng(13)
+    x = rng.random((n, 2))
+    r = rng.random((len(wins) * n, 2))
+    w = rng.random((len(wins) * n, 2))
+    close = dict(rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(lean.mv(x), plain.mv(x), **close)
+    np.testing.assert_allclose(lean.mvt(r), plain.mvt(r), **close)
+    np.testing.assert_allclose(lean.mvt_weighted(w, r), plain.mvt_weighted(w, r), **close)
+    np.testing.assert_allclose(lean.diag_normal(w), plain.diag_normal(w), **close)
+    np.testing.assert_allclose(lean.normal(x, w), plain.normal(x, w), **close)
+    np.testing.assert_array_equal(lean.moving_reach(), plain.moving_reach())
+
+
+def test_the_vet_image_made_as_its_split_alone_gives_the_matrix_products():
+    # The VET image's rows, an exposure time per group (here two), made as convolutions
+    # and the rows they miss: products, transposed products, the normal diagonal and the
+    # moving rows' reach are the matrix's.
+    from stages.deblur.convolution import SplitOperator
+    from stages.deblur.operator import moving_reach
+    from stages.deblur.stacked import diag_normal, product
+
+    vel = _translate((-6.0, 2.5))
+    T = np.where(np.arange(W)[None, :] < W // 3, 0.45, 1.0).repeat(H, 0).astype(np.float32)
+    wins = [Window(0.0, T, 1.0), Window(T, 1.0, 0.01)]
+    M = blur_matrix(vel, wins, step_px=0.5)
+    made = blur_matrix(vel, wins, step_px=0.5, split_shape=(H, W))
+    assert isinstance(made, ConvolutionSplit) and len(made.kernels) == 2
+    A = SplitOperator(made)
+    assert A.shape == M.shape and A.convolution is made
+    rng = np.random.default_rng(14)
+    x, w = rng.random((H * W, 3)), rng.random((H * W, 3))
+    close = dict(rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(A @ x[:, 0], M @ x[:, 0].astype(np.float32), **close)
+    np.testing.assert_allclose(product(A, x), product(M, x), **close)
+    np.testing.assert_allclose(product(A.T, x), product(M.T, x), **close)
+    np.testing.assert_allclose(diag_normal(A, w), diag_normal(M, w), **close)
+    np.testing.assert_array_equal(moving_reach(A), moving_reach(M))

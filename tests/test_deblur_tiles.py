@@ -125,6 +125,35 @@ def test_tiled_solve_matches_the_one_piece_solve(moving_capture):
     assert tiled.mask.shape == whole.mask.shape
 
 
+def test_tiles_side_by_side_give_the_image_of_one_at_a_time(moving_capture, monkeypatch):
+    # In one process, tiles are solved two at a time, each on one thread: the image is
+    # the one of tiles solved one after the other, to the bit.
+    import threading
+
+    from stages import cluster
+    from stages.deblur import tiles
+
+    cap = moving_capture
+    monkeypatch.setattr(tiles, "TILES_AT_ONCE", 1)
+    alone, _ = deblur(cap, motion_init="truth", tile=64)
+    seen = []
+    solve_one = tiles.deblur_tile
+
+    def spy(*args):
+        seen.append((threading.get_ident(), cluster.solve_threads()))
+        return solve_one(*args)
+
+    monkeypatch.setattr(tiles, "TILES_AT_ONCE", 2)
+    monkeypatch.setattr(tiles, "deblur_tile", spy)
+    monkeypatch.setattr(cluster.os, "cpu_count", lambda: 2)  # (the process not limited:)
+    monkeypatch.setattr(cluster, "_threads_limited", False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    both, _ = deblur(cap, motion_init="truth", tile=64)
+    assert both.meta["tiles"]["count"] == len(seen) >= 4
+    assert len({t for t, _ in seen}) == 2 and {n for _, n in seen} == {1}
+    np.testing.assert_array_equal(both.radiance, alone.radiance)
+
+
 @pytest.mark.slow
 def test_tiles_on_a_separately_started_dask_cluster(moving_capture, tmp_path):
     from tests.dask_local import separate_dask_cluster

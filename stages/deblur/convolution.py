@@ -374,3 +374,49 @@ class ConvolutionSplit:
         if self.rest.size:
             self._add_cols(out.reshape(-1), self.RT @ np.asarray(y, np.float32)[self.rest])
         return out
+
+
+class SplitOperator:
+    """An (N, N) operator held as its split alone (:class:`ConvolutionSplit`, no matrix),
+    with what a solve takes of a sparse matrix: ``M @ x`` and ``M.T @ y`` for ``x``, ``y``
+    (N,) or (N, C) (float32 results of the same shape), ``M.shape``, ``M.convolution``
+    (the split), the normal diagonal (:meth:`diag_normal`) and the moving rows' reach
+    (:meth:`moving_reach`)."""
+
+    def __init__(self, split: ConvolutionSplit):
+        self.convolution = split
+        n = split.shape[0] * split.shape[1]
+        self.shape = (n, n)
+
+    @property
+    def T(self) -> _SplitAdjoint:
+        return _SplitAdjoint(self.convolution, self.shape)
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        split = self.convolution
+        return _by_column(lambda v: split.apply(v.reshape(split.shape)), x)
+
+    def diag_normal(self, w: np.ndarray) -> np.ndarray:
+        """The diagonal of ``M.T diag(w) M`` for ``w`` (N, C), float64 (N, C)."""
+        return np.stack([self.convolution.diag_normal(w[:, c]) for c in range(w.shape[1])], axis=1)
+
+    def moving_reach(self) -> np.ndarray:
+        return self.convolution.moving_reach()
+
+
+class _SplitAdjoint:
+    """``M.T`` of a :class:`SplitOperator`: its products."""
+
+    def __init__(self, split: ConvolutionSplit, shape: tuple[int, int]):
+        self.convolution, self.shape = split, shape
+
+    def __matmul__(self, y: np.ndarray) -> np.ndarray:
+        return _by_column(lambda v: self.convolution.adjoint(v).reshape(-1), y)
+
+
+def _by_column(fn, x: np.ndarray) -> np.ndarray:
+    """``fn`` (of a contiguous float32 (N,) column, to (N,)) of ``x`` (N,) or (N, C)."""
+    x = np.asarray(x, np.float32)
+    if x.ndim == 1:
+        return fn(np.ascontiguousarray(x))
+    return np.stack([fn(np.ascontiguousarray(x[:, c])) for c in range(x.shape[1])], axis=1)

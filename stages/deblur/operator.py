@@ -58,7 +58,7 @@ from .assembly import (
     stencil_groups,
     sum_rows,
 )
-from .convolution import ConvolutionSplit
+from .convolution import ConvolutionSplit, SplitOperator
 
 #: A velocity field with at most this many distinct values is read as layers.
 MAX_LAYERS = 8
@@ -427,7 +427,10 @@ def static_rows(A: sp.csr_matrix) -> np.ndarray:
 def moving_reach(A: sp.csr_matrix) -> np.ndarray:
     """The columns (pixels) that the rows of ``A`` reading more than their own pixel read,
     bool (N,) (the stored values are positive weights: a column is reached exactly where
-    this product is non-zero, with no per-non-zero temporary)."""
+    this product is non-zero, with no per-non-zero temporary); ``A`` may be a
+    :class:`~stages.deblur.convolution.SplitOperator`."""
+    if isinstance(A, SplitOperator):
+        return A.moving_reach()
     moving = ~static_rows(A)
     if not moving.any():
         return np.zeros(A.shape[1], bool)

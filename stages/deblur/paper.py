@@ -174,7 +174,7 @@ def deblur_paper(
     def at(A: sp.csr_matrix, r: np.ndarray) -> np.ndarray:
         return np.asarray(A.T @ r.reshape(n, c).astype(np.float32), np.float64).reshape(h, w, c)
 
-    A, _ = build_operators(obs, vel, step_px=opts.step_px, subframe_s=subframe_s)
+    A, _ = build_operators(obs, vel, step_px=opts.step_px, subframe_s=subframe_s, lean=False)
     free = ~np.broadcast_to(saturated[..., None], L.shape)
 
     def energy(A_: sp.csr_matrix, img: np.ndarray) -> float:
@@ -227,7 +227,9 @@ def deblur_paper(
         gmax = float(np.abs(g_u).max())
         if gmax > 0:
             trial = (vel - opts.motion_step * g_u / gmax).astype(np.float32)
-            A_new, _ = build_operators(obs, trial, step_px=opts.step_px, subframe_s=subframe_s)
+            A_new, _ = build_operators(
+                obs, trial, step_px=opts.step_px, subframe_s=subframe_s, lean=False
+            )
             if np.sum(data_res(A_new, L) ** 2) < np.sum(r**2):
                 vel, A = trial, A_new
     if progress:

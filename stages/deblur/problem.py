@@ -18,7 +18,7 @@ import scipy.sparse as sp
 from ..cluster import solve_threads
 from ..formats.capture import Capture
 from ..physics import bin_may_clip
-from .convolution import ConvolutionSplit
+from .convolution import ConvolutionSplit, SplitOperator
 from .operator import Window, blur_matrix, motion_layers, vet_windows
 from .stacked import StackedOperator
 from .stream import StreamTerm
@@ -319,11 +319,17 @@ def build_operators(
     step_px_bins: float = 1.5,
     subframe_s: float | None = None,
     layers=None,
-) -> tuple[sp.csr_matrix, StackedOperator | None]:
+    lean: bool = True,
+) -> tuple[sp.csr_matrix | SplitOperator, StackedOperator | None]:
     """Blur operators of the VET image and of the measuring bins for a motion
     (``layers``: the motion as :class:`~stages.deblur.operator.Layers` when the caller
     has them, e.g. with trajectories; else read from ``velocity``). Bins observed through
-    a camera's sampling (``obs.sampling``) get its product with each blur."""
+    a camera's sampling (``obs.sampling``) get its product with each blur.
+
+    ``lean``: each operator whose assembly's plan has convolutions worth it
+    (:mod:`stages.deblur.convolution`) is made as them and the rows they miss, its matrix
+    never made (the VET image's as a :class:`~stages.deblur.convolution.SplitOperator`);
+    else every operator is a matrix (the VET image's with its split beside it)."""
     from concurrent.futures import ThreadPoolExecutor
 
     if layers is None:
@@ -331,16 +337,26 @@ def build_operators(
     # The VET image's operator alone (its assembly's temporaries are the largest), then
     # the bins' on two threads: numpy work that mostly releases the GIL, whose
     # temporaries are small.
-    A = blur_matrix(velocity, obs.windows, step_px=step_px, min_dt=subframe_s, layers=layers)
-    # Its rows that are convolutions, applied as such in the solves (None: none are):
-    # the groups of its assembly's plan (an exposure time and a layer each; found among
-    # the rows they are rarely common enough to pay for the search).
-    A.convolution = ConvolutionSplit.of(A, obs.shape[:2], detect=False)
+    # Its rows that are convolutions, applied as such (the groups of its assembly's plan:
+    # an exposure time and a layer each; found among the rows they are rarely common
+    # enough to pay for the search).
+    A = blur_matrix(
+        velocity,
+        obs.windows,
+        step_px=step_px,
+        min_dt=subframe_s,
+        layers=layers,
+        split_shape=obs.shape[:2] if lean else None,
+    )
+    if isinstance(A, ConvolutionSplit):
+        A = SplitOperator(A)
+    else:  # (None where none are)
+        A.convolution = ConvolutionSplit.of(A, obs.shape[:2], detect=False)
     if obs.yb is None:
         return A, None
     shape = obs.shape[:2] if obs.sampling is None else None
 
-    def one_bin(wins, split=True):
+    def one_bin(wins, split=lean):
         # A bin's operator as convolutions, its matrix never made, where its assembly's
         # plan allows; else the matrix and, found among its rows, its split.
         M = blur_matrix(

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .convolution import ConvolutionSplit
+from .convolution import ConvolutionSplit, SplitOperator, _SplitAdjoint
 
 #: Mean non-zeros per row above which a product with several columns goes one column at
 #: a time (:func:`product`).
@@ -26,6 +26,8 @@ def product(M: sp.spmatrix, x: np.ndarray) -> np.ndarray:
     are long (over :data:`LONG_ROWS_NNZ` non-zeros on average: the VET image's), one
     column at a time through the single-vector kernel, which is faster there.
     """
+    if isinstance(M, (SplitOperator, _SplitAdjoint)):  # (no matrix: its convolutions)
+        return M @ x
     if x.shape[1] == 1:
         return (M @ np.ascontiguousarray(x[:, 0], np.float32)).reshape(-1, 1)
     if M.nnz > LONG_ROWS_NNZ * M.shape[0]:
@@ -262,6 +264,8 @@ def diag_normal(A: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
     matrix that shares ``A``'s index arrays (no index matching, unlike
     ``A.multiply(A)``, and no squared copy of the whole matrix).
     """
+    if isinstance(A, SplitOperator):
+        return A.diag_normal(w)
     n_rows, n_cols = A.shape
     out = np.zeros((n_cols, w.shape[1]))
     for r0 in range(0, n_rows, DIAG_BLOCK_ROWS):

@@ -15,7 +15,9 @@ uses (an embedded ``LocalCluster`` on loopback, or an existing scheduler).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -30,6 +32,8 @@ from ..formats.capture import Capture
 HALO_MARGIN_PX = 16
 #: Smallest core side a tile may have.
 MIN_TILE_PX = 64
+#: Tiles solved side by side in one process (each on one thread), where it has the cores.
+TILES_AT_ONCE = 2
 #: ``tile="auto"``: frames with a side over AUTO_ABOVE_PX are solved in tiles of AUTO_TILE_PX.
 AUTO_TILE_PX = 512
 AUTO_ABOVE_PX = 1024
@@ -174,13 +178,19 @@ def _deblur_tile_on_worker(*args: Any) -> tuple[np.ndarray, str]:
 
 def _tile_jobs(
     cap: Capture, velocity: np.ndarray, tiles: list[Tile], paths: Any = None
-) -> Iterator[tuple[Capture, np.ndarray, Any]]:
-    for t in tiles:
-        ys, xs = t.slices()
-        crop = None
-        if paths is not None:
-            crop = dataclasses.replace(paths, label=np.ascontiguousarray(paths.label[ys, xs]))
-        yield crop_capture(cap, t), np.ascontiguousarray(velocity[ys, xs]), crop
+) -> list[Callable[[], tuple[Capture, np.ndarray, Any]]]:
+    """Per tile, a call that makes its job (crop, velocity, paths) when it is run."""
+    return [functools.partial(_tile_job, cap, velocity, t, paths) for t in tiles]
+
+
+def _tile_job(
+    cap: Capture, velocity: np.ndarray, t: Tile, paths: Any
+) -> tuple[Capture, np.ndarray, Any]:
+    ys, xs = t.slices()
+    crop = None
+    if paths is not None:
+        crop = dataclasses.replace(paths, label=np.ascontiguousarray(paths.label[ys, xs]))
+    return crop_capture(cap, t), np.ascontiguousarray(velocity[ys, xs]), crop
 
 
 def deblur_in_tiles(
@@ -241,7 +251,7 @@ def deblur_in_tiles(
 
 def _run(
     solve: Callable[..., Any],
-    jobs: Iterator[tuple[Capture, np.ndarray, Any]],
+    jobs: list[Callable[[], tuple[Capture, np.ndarray, Any]]],
     n: int,
     motion_model: str,
     options: object | None,
@@ -253,11 +263,27 @@ def _run(
     """Yield ``(tile index, deblur_tile result)`` as tiles finish: in-process with
     ``workers <= 1`` and no ``scheduler``, else as Dask tasks."""
     if scheduler is None and workers <= 1:
+        from ..cluster import in_order, one_thread_here, opencv_single_threaded, solve_threads
+
         info["executor"] = "in-process"
-        for i, (cap, vel, paths) in enumerate(jobs):
-            yield i, deblur_tile(solve, cap, vel, motion_model, options, paths)
-            if progress:
-                progress(i + 1, n)
+        # Tiles side by side on the process's threads, each solved on one: tiles share
+        # the cores better than one solve's products do. At most TILES_AT_ONCE in flight
+        # (memory: one tile's operators and observations each). OpenCV on one thread
+        # however many run at once, as on a Dask worker: the same image either way.
+        with opencv_single_threaded():
+            side = min(TILES_AT_ONCE, solve_threads()) > 1
+
+            def one(i: int) -> tuple[np.ndarray, str]:
+                cap, vel, paths = jobs[i]()  # (the crop made on the thread that solves it)
+                with one_thread_here() if side else contextlib.nullcontext():
+                    return deblur_tile(solve, cap, vel, motion_model, options, paths)
+
+            for i, result in enumerate(
+                in_order(one, n, most=TILES_AT_ONCE) if side else map(one, range(n))
+            ):
+                yield i, result
+                if progress:
+                    progress(i + 1, n)
         return
     import distributed
 
@@ -265,7 +291,8 @@ def _run(
 
     with dask_client(workers, scheduler, info) as client:
         index = {}
-        for i, (cap, vel, paths) in enumerate(jobs):
+        for i, job in enumerate(jobs):
+            cap, vel, paths = job()
             index[
                 client.submit(
                     _deblur_tile_on_worker,
