@@ -1,4 +1,5 @@
-"""Deblur in overlapping tiles: memory bounded by a tile, one frame spread over workers.
+"""Deblur in overlapping tiles: memory bounded by the tiles in flight, one frame spread
+over workers.
 
 The motion is estimated once for the whole frame (:func:`stages.deblur.start_motion`), so
 every tile sees the same motion. The frame is cut into a grid of *cores* (each pixel in
@@ -9,8 +10,10 @@ default method with the global motion fixed), and the tiles are blended with wei
 that are 1 on the core and fall linearly to 0 across the halo (1 up to the frame's own
 edges), so neighbouring solutions cross-fade instead of meeting at a seam.
 
-Tiles run in-process one after the other, or as Dask tasks on the engine ``vet batch``
-uses (an embedded ``LocalCluster`` on loopback, or an existing scheduler).
+Tiles run in-process, :data:`TILES_AT_ONCE` at a time on the process's threads where
+it has the cores (each solved on one thread, the same image as one after the other), or
+as Dask tasks on the engine ``vet batch`` uses (an embedded ``LocalCluster`` on loopback,
+or an existing scheduler).
 """
 
 from __future__ import annotations
