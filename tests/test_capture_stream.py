@@ -67,6 +67,23 @@ def test_one_time_bin_is_that_bin_of_all_of_them(many_bins_capture, n_bins):
         del cap.meta["measure_subframes"]
 
 
+def _stream_capture(nb, dtype, h=6, w=5, ch=3, seed=0):
+    from stages.formats.capture import Capture
+
+    rng = np.random.default_rng(seed)
+    measure = rng.integers(0, 4000, (nb, h, w, ch), dtype=np.int16).astype(dtype, copy=False)
+    times = np.stack([np.arange(nb), np.arange(1, nb + 1)], 1) * 0.0075
+    return Capture(
+        I=np.ones((h, w, ch), np.float32),
+        T=np.full((h, w), 0.5, np.float32),
+        channels=["R", "G", "B"][:ch],
+        rig=RigParams(sensor_size=(w, h)),
+        measure=measure,
+        measure_times=times,
+        meta={"measure_subframes": [1 + (k % 3 == 0) for k in range(nb)]},
+    )
+
+
 _READ_PEAK = """
 import sys
 from stages.formats import read_capture
@@ -96,20 +113,8 @@ def test_reading_a_stream_holds_its_frames_once(tmp_path, ext):
     import subprocess
     import sys
 
-    from stages.formats.capture import Capture
-
-    rng = np.random.default_rng(0)
-    h, w, nb = 384, 512, 96
-    measure = rng.integers(0, 4000, (nb, h, w, 3), dtype=np.int16)
-    times = np.stack([np.arange(nb), np.arange(1, nb + 1)], 1) * 0.0075
-    cap = Capture(
-        I=np.ones((h, w, 3), np.float32),
-        T=np.full((h, w), 0.5, np.float32),
-        channels=["R", "G", "B"],
-        rig=RigParams(sensor_size=(w, h)),
-        measure=measure,
-        measure_times=times,
-    )
+    cap = _stream_capture(96, np.int16, 384, 512)
+    measure = cap.measure
     write_capture(tmp_path / f"s.{ext}", cap)
     out = subprocess.run(
         [sys.executable, "-c", _READ_PEAK, str(tmp_path / f"s.{ext}")],
@@ -139,23 +144,6 @@ def test_measuring_images_of_two_sizes_are_refused_in_one_line():
     data.layers["M01"] = np.ones((6, 7, 1), np.float32)  # (a container made in memory)
     with pytest.raises(FormatError, match=r"^mem: measuring image M01 is not the size of M00$"):
         Capture.from_layered(data, "mem")
-
-
-def _stream_capture(nb, dtype, h=6, w=5, ch=3, seed=0):
-    from stages.formats.capture import Capture
-
-    rng = np.random.default_rng(seed)
-    measure = rng.integers(0, 4000, (nb, h, w, ch)).astype(dtype)
-    times = np.stack([np.arange(nb), np.arange(1, nb + 1)], 1) * 0.0075
-    return Capture(
-        I=np.ones((h, w, ch), np.float32),
-        T=np.full((h, w), 0.5, np.float32),
-        channels=["R", "G", "B"][:ch],
-        rig=RigParams(sensor_size=(w, h)),
-        measure=measure,
-        measure_times=times,
-        meta={"measure_subframes": [1 + (k % 3 == 0) for k in range(nb)]},
-    )
 
 
 @pytest.mark.parametrize(
@@ -215,8 +203,7 @@ def test_too_few_frames_per_bin_are_binned_beside_the_stream():
 
 _BIN_PEAK = """
 import numpy as np
-from stages.formats.capture import Capture
-from stages.rig import RigParams
+from tests.test_capture_stream import _stream_capture
 
 
 def status(key):
@@ -224,18 +211,7 @@ def status(key):
         return next(int(v.split()[1]) for v in f if v.startswith(key + ":")) * 1024
 
 
-nb, h, w = 96, 384, 512
-measure = np.empty((nb, h, w, 3), np.int16)
-measure[:] = np.arange(nb, dtype=np.int16)[:, None, None, None]
-cap = Capture(
-    I=np.ones((h, w, 3), np.float32),
-    T=np.full((h, w), 0.5, np.float32),
-    channels=["R", "G", "B"],
-    rig=RigParams(sensor_size=(w, h)),
-    measure=measure,
-    measure_times=np.stack([np.arange(nb), np.arange(1, nb + 1)], 1) * 0.0075,
-)
-del measure
+cap = _stream_capture(96, np.int16, 384, 512)
 before, held = status("VmHWM"), status("VmRSS")
 bins = cap.time_bins(16, consume=True)
 print(cap.measure is None, bins.measure.nbytes, status("VmHWM") - before, held - status("VmRSS"))

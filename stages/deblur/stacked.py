@@ -115,8 +115,10 @@ class StackedOperator:
         from .operator import moving_reach
 
         out = np.zeros(self.shape[1], bool)
-        for M in self.parts if self.parts is not None else self.blurs:
-            out |= M.moving_reach() if self.parts is not None else moving_reach(M)
+        for part in self.parts or []:
+            out |= part.moving_reach()
+        for M in self.blurs:  # (none where the parts are splits alone)
+            out |= moving_reach(M)
         return out
 
     def mv(self, x: np.ndarray) -> np.ndarray:
