@@ -260,3 +260,37 @@ def test_the_solve_gives_the_same_image_on_one_thread_and_on_several(monkeypatch
     assert cluster.solve_threads() == 1
     monkeypatch.setenv("OMP_NUM_THREADS", "2")
     assert 1 <= cluster.solve_threads() <= cluster.MAX_SOLVE_THREADS
+
+
+def test_bins_some_of_which_have_no_convolutions_are_all_matrices(monkeypatch):
+    # The bins are held as splits alone only where every one has them; where one comes
+    # as a matrix (no plan), all are made as matrices (with their splits beside), and
+    # the products are the same.
+    from stages.deblur import problem
+    from stages.deblur.problem import build_operators
+
+    rig = RigParams(sensor_size=(64, 48))
+    cap = simulate(builtin_interior(64, 48), parse_motion("translate:20,0"), rig, seed=1)["vet"]
+    obs = observations(cap)
+    vel = np.zeros((48, 64, 2), np.float32)
+    vel[..., 0] = 20.0
+    _, lean = build_operators(obs, vel, step_px_bins=0.5)
+    assert lean.parts is not None
+    first = obs.windows_b[0]
+    make = problem.blur_matrix
+
+    def no_plan_for_the_first(vel, wins, **kw):
+        if wins is first:
+            kw["split_shape"] = None
+        return make(vel, wins, **kw)
+
+    monkeypatch.setattr(problem, "blur_matrix", no_plan_for_the_first)
+    _, mixed = build_operators(obs, vel, step_px_bins=0.5)
+    assert mixed.parts is None
+    assert all(g[0] is not None for g in mixed.groups)
+    assert all(s is not None for s in mixed.splits)
+    rng = np.random.default_rng(4)
+    x = rng.random((48 * 64, 1))
+    w = rng.random((mixed.shape[0], 1))
+    np.testing.assert_allclose(mixed.mv(x), lean.mv(x), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(mixed.normal(x, w), lean.normal(x, w), rtol=1e-5, atol=1e-6)

@@ -49,10 +49,11 @@ class StackedOperator:
 
     Behaves as their vertical stack for the few products the solvers need. The parts are
     stacked into at most :data:`BIN_GROUPS` consecutive groups (one CSR matrix each,
-    with its transposed view), so that a product is a few calls of scipy's kernels, not
-    one per bin, and the normal product splits into independent pieces, one per group
-    and channel (:meth:`normal_column`), that threads can share. Products go in the
-    parts' float32; no (B N, C) float64 array is ever made.
+    with its transposed view, or, for parts given as splits alone, the group's splits),
+    so that a product is a few calls of scipy's kernels, not one per bin, and the normal
+    product splits into independent pieces, one per group and channel
+    (:meth:`normal_column`), that threads can share. Products go in the parts' float32;
+    no (B N, C) float64 array is ever made.
     """
 
     def __init__(
@@ -85,7 +86,8 @@ class StackedOperator:
                 in_order(lambda i: ConvolutionSplit.of(parts[i], image_shape), len(parts))
             )
         step = -(-len(parts) // min(BIN_GROUPS, len(parts)))
-        #: (stack, its transposed view, first row, end row) of each group.
+        #: (stack, its transposed view, first row, end row) of each group (the stack
+        #: and its view None where the parts are splits alone).
         self.groups = []
         #: Each group's parts as shifted convolutions (:mod:`stages.deblur.convolution`)
         #: where every part of the group splits (operators on an ``image_shape`` grid),
