@@ -47,6 +47,11 @@ CLOSE_TIMEOUT_S = 30.0
 SHUTDOWN_LOGGERS = ("distributed", "tornado", "asyncio")
 
 _threads_limited = False
+#: Whether this process was started with ``OMP_NUM_THREADS=1`` (by whoever started it),
+#: read once: Dask's nanny sets that variable in the process that starts its workers
+#: (``distributed.nanny.pre-spawn-environ``, "even if this means poisoning the process
+#: running the Nanny"), which must not make that process's own work single-threaded.
+_started_one_thread = os.environ.get("OMP_NUM_THREADS") == "1"
 #: Per-thread state (:func:`one_thread_here`).
 _local = threading.local()
 #: Blocks of :func:`opencv_single_threaded` open at once, and the setting they restore.
@@ -61,10 +66,11 @@ MAX_SOLVE_THREADS = 4
 
 def solve_threads() -> int:
     """Threads the deblur's products may use in this process: one in a limited worker
-    (:func:`limit_threads`, or ``OMP_NUM_THREADS=1`` set by whoever started it) or on a
+    (:func:`limit_threads`, or a process started with ``OMP_NUM_THREADS=1``) or on a
     thread inside :func:`one_thread_here`, else the cores, at most
-    :data:`MAX_SOLVE_THREADS`."""
-    if _threads_limited or os.environ.get("OMP_NUM_THREADS") == "1" or _local.__dict__.get("one"):
+    :data:`MAX_SOLVE_THREADS`. (The variable as the process started: a Dask cluster
+    started here sets it for its workers' sake.)"""
+    if _threads_limited or _started_one_thread or _local.__dict__.get("one"):
         return 1
     return max(1, min(MAX_SOLVE_THREADS, os.cpu_count() or 1))
 
@@ -302,6 +308,20 @@ def _close(client: Any, cluster: Any) -> None:
 
 
 @contextlib.contextmanager
+def environ_kept() -> Iterator[None]:
+    """This process's environment as it was before the block, whatever the block set
+    (a Dask nanny sets its workers' variables, ``OMP_NUM_THREADS=1`` among them, here
+    before it spawns them: processes this one starts later must not inherit them)."""
+    before = dict(os.environ)
+    try:
+        yield
+    finally:
+        for k in set(os.environ) - set(before):
+            del os.environ[k]
+        os.environ.update(before)
+
+
+@contextlib.contextmanager
 def dask_client(
     workers: int,
     scheduler: str | None = None,
@@ -339,16 +359,17 @@ def dask_client(
                 ) from None
             info["executor"] = f"dask scheduler {scheduler}"
         else:
-            cluster = distributed.LocalCluster(
-                n_workers=workers,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                dashboard_address=None,
-                worker_dashboard_address=None,
-                env=dict(WORKER_ENV),
-                silence_logs=logging.ERROR,  # worker heartbeat warnings under load: noise
-            )
+            with environ_kept():  # (the nanny's pre-spawn variables are its workers')
+                cluster = distributed.LocalCluster(
+                    n_workers=workers,
+                    threads_per_worker=1,
+                    processes=True,
+                    host="127.0.0.1",
+                    dashboard_address=None,
+                    worker_dashboard_address=None,
+                    env=dict(WORKER_ENV),
+                    silence_logs=logging.ERROR,  # worker heartbeat warnings under load: noise
+                )
             client = distributed.Client(cluster, set_as_default=False)
             client.register_plugin(quiet_shutdown_plugin(), name="vet-quiet-shutdown")
             info["executor"] = f"dask LocalCluster, {workers} worker processes on 127.0.0.1"

@@ -39,6 +39,40 @@ def test_an_embedded_cluster_closes_quietly_and_shows_errors_while_working(capfd
     assert "Traceback" not in err and "Failed to communicate" not in err, err
 
 
+def _worker_omp() -> str | None:
+    import os
+
+    return os.environ.get("OMP_NUM_THREADS")
+
+
+def test_a_cluster_started_here_leaves_this_process_its_threads_and_environment(monkeypatch):
+    # A Dask nanny sets its workers' OMP_NUM_THREADS=1 in the process that spawns them
+    # (distributed.nanny.pre-spawn-environ). The workers get it; this process keeps its
+    # environment (what it starts later inherits) and its threads (solve_threads reads
+    # the variable as the process started, so a cluster started by anyone here, or the
+    # variable set later, leaves them).
+    import os
+    import subprocess
+    import sys
+
+    from stages import cluster
+
+    monkeypatch.setattr(cluster.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(cluster, "_threads_limited", False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    before = dict(os.environ)
+    with cluster.dask_client(1) as client:
+        assert client.submit(_worker_omp, pure=False).result() == "1"
+    assert dict(os.environ) == before
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # (as a cluster started by another hand)
+    assert cluster.solve_threads() == 2
+    code = "import stages.cluster as c; print(c.solve_threads())"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["1"]  # (a process started so is limited)
+
+
 def test_a_worker_lets_its_heap_reuse_freed_arrays():
     # A Dask nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536 (every array over
     # 128 kB a fresh mmap); limit_threads, which every worker task calls first, sets

@@ -67,17 +67,18 @@ def _deblur(path: str, tile: str, workers: str, seam_tile: int) -> dict:
 
         import distributed
 
-        from stages.cluster import WORKER_ENV
+        from stages.cluster import WORKER_ENV, environ_kept
 
-        cluster = distributed.LocalCluster(
-            n_workers=int(workers[4:]),
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            dashboard_address=None,
-            env=dict(WORKER_ENV),
-            silence_logs=logging.ERROR,
-        )
+        with environ_kept():  # (as vet's own: the workers' variables are theirs)
+            cluster = distributed.LocalCluster(
+                n_workers=int(workers[4:]),
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,
+                env=dict(WORKER_ENV),
+                silence_logs=logging.ERROR,
+            )
         scheduler = cluster.scheduler_address
     t0, wall0 = time.perf_counter(), time.time()
     stream = contextlib.nullcontext(None)
