@@ -37,6 +37,7 @@ from ..formats.capture import Capture, provenance_entry
 from ..formats.hdr import HDRImage
 from ..hdr_static import hdr_static, reconstruction
 from ..measure_grid import register_measure
+from .bins_first import bins_first
 from .operator import Layers
 
 log = logging.getLogger(__name__)
@@ -308,6 +309,8 @@ def deblur(
     # as recorded).
     recorded = cap
     cap = register_measure(cap)
+    streamed = cap.keeps_stream
+    fit = None  # (the misfit's bins, where made before the motion estimate: bins_first)
     static = hdr_static(recorded, registered=cap)
     if cap.models_lcos:  # on the whole frame, for tiles cropped from it too
         from .problem import effective_T as _effective_T
@@ -340,9 +343,13 @@ def deblur(
             vel0 = layers.velocity[layers.label].astype(np.float32)
             motion_model = "layer-paths"
         else:
+            source = cap
+            if release_stream and method == "vet" and motion_init in ("paths", "layers"):
+                fit, source = bins_first(cap, recorded, options) or (None, cap)
             vel0, motion_model = start_motion(
-                cap, "layers" if motion_init == "paths" else motion_init
+                source, "layers" if motion_init == "paths" else motion_init
             )
+            del source
     rig = cap.rig
     tf = float(cap.meta.get("integration_s", rig.frame_s))
     from ..cluster import trim_heap
@@ -354,7 +361,7 @@ def deblur(
     # none of them by more than a fraction of a pixel.
     n_fit = fit_bins(_max_speed(vel0, layers), tf, rig.n_subframes, cap.shape[0] * cap.shape[1])
     # ... each sampled along the motion as finely as the frame's size allows.
-    n_bins = n_fit if cap.keeps_stream else (0 if cap.measure is None else cap.measure.shape[0])
+    n_bins = n_fit if streamed else (0 if cap.measure is None else cap.measure.shape[0])
     spacing = bin_step(_max_speed(vel0, layers), tf, n_bins, cap.shape[0] * cap.shape[1])
     # ... and the VET image's along a camera path.
     along_path = layers is not None and layers.trajectory is not None
@@ -384,7 +391,9 @@ def deblur(
         if opts.step_px is None:
             opts = replace(opts, step_px=vet_spacing)
         tiles_cap = cap
-        if not cap.rig.ideal_geometry and recorded.measure is not None:
+        if fit is not None:
+            tiles_cap = fit
+        elif not cap.rig.ideal_geometry and recorded.measure is not None:
             # The tiles fit the camera's bins on its grid, each the pixels that see it
             # (stages.deblur.camera_grid); the bins registered onto the VET grid start them.
             from .camera_grid import CameraBins
@@ -443,8 +452,8 @@ def deblur(
             path_motion=opts.path_motion and motion is None and motion_model == "layer-paths",
             layer_motion=opts.layer_motion and motion is None and motion_model == "layers",
         )
-        fit_src = recorded
-        if opts.use_measure and not opts.stream_fit and recorded.keeps_stream:
+        fit_src = recorded if fit is None else fit
+        if fit is None and opts.use_measure and not opts.stream_fit and recorded.keeps_stream:
             if release_stream and recorded is not cap:
                 cap.measure = None
             # (the bins the misfit reads, as it bins them; in the stream's memory when let go)

@@ -69,6 +69,16 @@ def measure_bin_edges(n_subframes: int, n_bins: int) -> np.ndarray:
     return np.linspace(0, n_subframes, n_bins + 1).round().astype(int)
 
 
+def bin_times(measure_times: np.ndarray, n_bins: int) -> np.ndarray:
+    """The ``[start, end)`` times (B, 2) s of measuring images with ``measure_times``
+    (F, 2) summed into ``n_bins`` time bins (:meth:`Capture.time_bins`)."""
+    mt = np.asarray(measure_times, np.float64)
+    if len(mt) <= n_bins:
+        return mt
+    edges = measure_bin_edges(len(mt), n_bins)
+    return np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
+
+
 def sum_bins_in_place(box: list[np.ndarray], edges: np.ndarray) -> np.ndarray | None:
     """The sums of a stream (F, ...) over its frames ``edges[k]:edges[k + 1]``, float32
     (B, ...), made in the stream's own memory, which then shrinks to theirs.
@@ -211,11 +221,12 @@ class Capture:
     def bin_times(self, n_bins: int) -> np.ndarray:
         """The ``[start, end)`` times (B, 2) s of :meth:`time_bins` ``(n_bins)``'s
         measuring images, without summing them."""
-        mt = np.asarray(self.measure_times, np.float64)
-        if len(mt) <= n_bins:
-            return mt
-        edges = measure_bin_edges(len(mt), n_bins)
-        return np.stack([mt[edges[:-1], 0], mt[edges[1:] - 1, 1]], axis=1)
+        return bin_times(self.measure_times, n_bins)
+
+    @property
+    def measure_shape(self) -> tuple[int, ...]:
+        """The measuring images' shape (B, H, W, C)."""
+        return self.measure.shape
 
     def time_bin(self, n_bins: int, k: int) -> Capture:
         """Bin ``k`` of :meth:`time_bins` ``(n_bins)`` alone, as a capture of one

@@ -15,11 +15,11 @@ def rate_frames(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     full-resolution colour arrays made."""
     # A stream's bins are summed each as it is read (no stack of them is made).
     nb = _motion_bin_count(cap)
-    if nb < cap.measure.shape[0]:
+    if nb < cap.measure_shape[0]:
         one = lambda b: _bin_rate(cap.time_bin(nb, b), 0)  # noqa: E731
     else:
         one = lambda b: _bin_rate(cap, b)  # noqa: E731
-    h, w = cap.measure.shape[1:3]
+    h, w = cap.measure_shape[1:3]
     lum = np.empty((nb, h, w), np.float32)
     noise = np.empty((nb, h, w), np.float32)
     valid = np.empty((nb, h, w), bool)
@@ -38,7 +38,7 @@ def _motion_bin_count(cap: Capture) -> int:
     :data:`~stages.formats.capture.MOTION_BINS` (or fewer subframes), else its images."""
     from ...formats.capture import MOTION_BINS
 
-    n = cap.measure.shape[0]
+    n = cap.measure_shape[0]
     return min(n, MOTION_BINS) if cap.keeps_stream else n
 
 
@@ -119,7 +119,7 @@ def binned_work_frames(cap: Capture, n_bins: int, max_px: int):
     bins' centre times (s). One bin at a time (:meth:`~stages.formats.capture.Capture.time_bin`):
     each bin's sum, rates, noise and validity are made at full resolution and kept at the
     working scale only."""
-    nb = min(n_bins, cap.measure.shape[0])
+    nb = min(n_bins, cap.measure_shape[0])
 
     def work(k: int):
         one = cap.time_bin(nb, k)

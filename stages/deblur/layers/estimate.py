@@ -57,7 +57,7 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
     # (a larger frame's would hold all of them at full resolution: its motion bins').
     lum_t, noise_t, lvt, slvt, centres_t = lum, noise, lv, slv, centres
     centres_b = centres
-    if cap.keeps_stream and cap.measure.shape[0] > TRACK_BINS > n_binned:
+    if cap.keeps_stream and cap.measure_shape[0] > TRACK_BINS > n_binned:
         if max(h, w) <= MAX_WORK_PX:  # (the working grid: full resolution, small)
             fine = cap.time_bins(TRACK_BINS)
             lum_t, noise_t, valid_t = rate_frames(fine)
