@@ -52,6 +52,8 @@ from .container import (
     parse_meta,
 )
 from .exr import EXR_WRITE_ROWS, MAX_PARTS, _oiio, meta_chunks, read_exr, read_oiio, write_exr
+from .inflate import ERRORS as INFLATE_ERRORS
+from .inflate import open_member
 from .io import atomic_output, sniff, spooled_input
 from .names import format_for_output
 
@@ -118,6 +120,7 @@ _NPY_ERRORS = (
     OSError,
     zipfile.BadZipFile,
     zlib.error,
+    *INFLATE_ERRORS,
 )
 
 
@@ -189,7 +192,7 @@ def read_npy(fp, max_bytes: int) -> np.ndarray:
 def _npz_array(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str) -> np.ndarray:
     """One .npy member's array (its header checked by :func:`_npz_member_header`)."""
     try:
-        with zf.open(info) as fp:
+        with open_member(zf, info) as fp:
             return read_npy(fp, info.file_size)
     except _NPY_ERRORS as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
