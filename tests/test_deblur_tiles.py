@@ -172,3 +172,41 @@ def test_cli_tile_options(tmp_path):
     assert res.exit_code == 2 and "tile size >= 64" in res.output
     res = CliRunner().invoke(cli, ["deblur", "x.exr", "-o", "y.exr", "-j", "0"])
     assert res.exit_code == 2
+
+
+def test_tiles_on_an_embedded_cluster_are_scattered_beside_their_tasks(moving_capture, monkeypatch):
+    # Each tile's data goes to the workers beside its task (no large task graph: Dask
+    # warns of one over its threshold, lowered here below a tile's data), the next tiles
+    # submitted as others finish; the image is the one solved in-process.
+    import warnings
+
+    import dask
+
+    from stages.deblur import tiles
+
+    cap = moving_capture
+    monkeypatch.setattr(tiles, "DASK_AHEAD", 1)  # (tiles submitted as others finish)
+    alone, _ = deblur(cap, motion_init="truth", tile=64)
+    with (
+        dask.config.set({"distributed.admin.large-graph-warning-threshold": "20kB"}),
+        warnings.catch_warnings(),
+    ):
+        warnings.simplefilter("error")  # (a large-graph warning fails the test)
+        spread, _ = deblur(cap, motion_init="truth", tile=64, workers=2)
+    assert spread.meta["tiles"]["executor"].startswith("dask LocalCluster, 2 worker")
+    assert spread.meta["tiles"]["count"] == alone.meta["tiles"]["count"] > 2
+    np.testing.assert_array_equal(spread.radiance, alone.radiance)
+
+
+def test_tiles_finishing_in_any_order_blend_to_the_same_image(moving_capture, monkeypatch):
+    # Dask hands tiles back as they finish; they are blended in the grid's order, so
+    # the overlaps' sums round alike: the same image to the bit.
+    from stages.deblur import tiles
+
+    cap = moving_capture
+    in_order, _ = deblur(cap, motion_init="truth", tile=64)
+    run = tiles._run
+    monkeypatch.setattr(tiles, "_run", lambda *a: reversed(list(run(*a))))
+    reversed_, _ = deblur(cap, motion_init="truth", tile=64)
+    assert reversed_.meta["tiles"] == in_order.meta["tiles"]
+    np.testing.assert_array_equal(reversed_.radiance, in_order.radiance)

@@ -37,6 +37,8 @@ HALO_MARGIN_PX = 16
 MIN_TILE_PX = 64
 #: Tiles solved side by side in one process (each on one thread), where it has the cores.
 TILES_AT_ONCE = 2
+#: Tiles in flight per Dask worker (one solving, one on its way).
+DASK_AHEAD = 2
 #: ``tile="auto"``: frames with a side over AUTO_ABOVE_PX are solved in tiles of AUTO_TILE_PX.
 AUTO_TILE_PX = 512
 AUTO_ABOVE_PX = 1024
@@ -172,11 +174,16 @@ def deblur_tile(
     return img.radiance, str(img.meta.get("still_pixels", ""))
 
 
-def _deblur_tile_on_worker(*args: Any) -> tuple[np.ndarray, str]:
+def _deblur_tile_on_worker(
+    solve: Callable[..., Any], job: tuple[Capture, np.ndarray, Any], motion_model: str, options
+) -> tuple[np.ndarray, str]:
+    """:func:`deblur_tile` of ``job`` (crop, velocity, paths: :func:`_tile_job`) on a Dask
+    worker."""
     from ..cluster import limit_threads
 
     limit_threads()  # N workers mean N cores, on an embedded or an external cluster
-    return deblur_tile(*args)
+    cap, velocity, paths = job
+    return deblur_tile(solve, cap, velocity, motion_model, options, paths)
 
 
 def _tile_jobs(
@@ -223,8 +230,11 @@ def deblur_in_tiles(
     acc = np.zeros((h, w, cap.I.shape[2]), np.float32)
     wsum = np.zeros((h, w), np.float32)
     info: dict[str, Any] = {}
-    still: set[str] = set()
-    for i, (radiance, still_pixels) in _run(
+    still: list[str] = []  # (each blended tile's, in order)
+    # Blended in the tiles' order whatever order they finish in (the overlaps' sums
+    # then round alike: the same image on any number of workers).
+    held: dict[int, tuple[np.ndarray, str]] = {}
+    for i, result in _run(
         solve,
         _tile_jobs(cap, velocity, tiles, paths),
         len(tiles),
@@ -235,11 +245,14 @@ def deblur_in_tiles(
         progress,
         info,
     ):
-        ys, xs = tiles[i].slices()
-        wgt = blend_weight(tiles[i], (h, w), halo)
-        acc[ys, xs] += radiance * wgt[..., None]
-        wsum[ys, xs] += wgt
-        still.add(still_pixels)
+        held[i] = result
+        while (k := len(still)) in held:  # (the next tile in order, once it is in)
+            radiance, still_pixels = held.pop(k)
+            ys, xs = tiles[k].slices()
+            wgt = blend_weight(tiles[k], (h, w), halo)
+            acc[ys, xs] += radiance * wgt[..., None]
+            wsum[ys, xs] += wgt
+            still.append(still_pixels)
     acc /= np.maximum(wsum, 1e-12)[..., None]
     record = {
         "size": int(tile),
@@ -247,7 +260,7 @@ def deblur_in_tiles(
         "count": len(tiles),
         "executor": info.get("executor", "in-process"),
         "workers": int(info.get("workers", 1)),
-        "still_pixels": still.pop() if len(still) == 1 else "mixed",
+        "still_pixels": still[0] if len(set(still)) == 1 else "mixed",
     }
     return acc, record
 
@@ -293,23 +306,25 @@ def _run(
     from ..cluster import dask_client
 
     with dask_client(workers, scheduler, info) as client:
-        index = {}
-        for i, job in enumerate(jobs):
-            cap, vel, paths = job()
-            index[
-                client.submit(
-                    _deblur_tile_on_worker,
-                    solve,
-                    cap,
-                    vel,
-                    motion_model,
-                    options,
-                    paths,
-                    pure=False,
-                )
-            ] = i
-        done = 0
-        for fut in distributed.as_completed(list(index), loop=client.loop):
+        # Each tile's data scattered to the workers (not in the task graph, which the
+        # scheduler would unpickle and hold), DASK_AHEAD tiles a worker in flight: the
+        # cluster holds a few tiles' data at a time, not the frame's.
+        window = max(1, DASK_AHEAD * max(1, int(info.get("workers", 1))))
+        index: dict[Any, int] = {}
+
+        def submit(i: int) -> Any:
+            [data] = client.scatter([jobs[i]()], hash=False)
+            fut = client.submit(
+                _deblur_tile_on_worker, solve, data, motion_model, options, pure=False
+            )
+            index[fut] = i
+            return fut
+
+        queue = distributed.as_completed(
+            [submit(i) for i in range(min(n, window))], loop=client.loop
+        )
+        done, started = 0, min(n, window)
+        for fut in queue:
             try:
                 result = fut.result()
             except VetError:
@@ -317,7 +332,10 @@ def _run(
             except Exception as exc:  # noqa: BLE001 - a worker died or a task failed
                 raise VetError(f"tile {index[fut]} failed on a Dask worker ({exc})") from None
             fut.release()
+            if started < n:
+                queue.add(submit(started))
+                started += 1
             done += 1
             if progress:
                 progress(done, n)
-            yield index[fut], result
+            yield index.pop(fut), result
