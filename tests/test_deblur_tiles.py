@@ -89,6 +89,19 @@ def moving_capture():
     return simulate(scene, parse_motion("translate:30,0"), rig, seed=3, methods=["vet"])["vet"]
 
 
+@pytest.fixture(scope="module")
+def one_at_a_time(moving_capture):
+    """The capture's image solved in 64 px tiles, one after the other, in-process."""
+    from stages.deblur import tiles
+
+    before = tiles.TILES_AT_ONCE
+    tiles.TILES_AT_ONCE = 1
+    try:
+        return deblur(moving_capture, motion_init="truth", tile=64)[0]
+    finally:
+        tiles.TILES_AT_ONCE = before
+
+
 def test_crop_takes_every_per_pixel_array(moving_capture):
     cap = moving_capture
     t = Tile((10, 40, 20, 70), (0, 50, 5, 90))
@@ -125,7 +138,9 @@ def test_tiled_solve_matches_the_one_piece_solve(moving_capture):
     assert tiled.mask.shape == whole.mask.shape
 
 
-def test_tiles_side_by_side_give_the_image_of_one_at_a_time(moving_capture, monkeypatch):
+def test_tiles_side_by_side_give_the_image_of_one_at_a_time(
+    moving_capture, one_at_a_time, monkeypatch
+):
     # In one process, tiles are solved two at a time, each on one thread: the image is
     # the one of tiles solved one after the other, to the bit.
     import threading
@@ -133,9 +148,7 @@ def test_tiles_side_by_side_give_the_image_of_one_at_a_time(moving_capture, monk
     from stages import cluster
     from stages.deblur import tiles
 
-    cap = moving_capture
-    monkeypatch.setattr(tiles, "TILES_AT_ONCE", 1)
-    alone, _ = deblur(cap, motion_init="truth", tile=64)
+    cap, alone = moving_capture, one_at_a_time
     seen = []
     solve_one = tiles.deblur_tile
 
@@ -174,7 +187,9 @@ def test_cli_tile_options(tmp_path):
     assert res.exit_code == 2
 
 
-def test_tiles_on_an_embedded_cluster_are_scattered_beside_their_tasks(moving_capture, monkeypatch):
+def test_tiles_on_an_embedded_cluster_are_scattered_beside_their_tasks(
+    moving_capture, one_at_a_time, monkeypatch
+):
     # Each tile's data goes to the workers beside its task (no large task graph: Dask
     # warns of one over its threshold, lowered here below a tile's data), the next tiles
     # submitted as others finish; the image is the one solved in-process.
@@ -184,9 +199,8 @@ def test_tiles_on_an_embedded_cluster_are_scattered_beside_their_tasks(moving_ca
 
     from stages.deblur import tiles
 
-    cap = moving_capture
+    cap, alone = moving_capture, one_at_a_time
     monkeypatch.setattr(tiles, "DASK_AHEAD", 1)  # (tiles submitted as others finish)
-    alone, _ = deblur(cap, motion_init="truth", tile=64)
     with (
         dask.config.set({"distributed.admin.large-graph-warning-threshold": "20kB"}),
         warnings.catch_warnings(),
@@ -198,13 +212,14 @@ def test_tiles_on_an_embedded_cluster_are_scattered_beside_their_tasks(moving_ca
     np.testing.assert_array_equal(spread.radiance, alone.radiance)
 
 
-def test_tiles_finishing_in_any_order_blend_to_the_same_image(moving_capture, monkeypatch):
+def test_tiles_finishing_in_any_order_blend_to_the_same_image(
+    moving_capture, one_at_a_time, monkeypatch
+):
     # Dask hands tiles back as they finish; they are blended in the grid's order, so
     # the overlaps' sums round alike: the same image to the bit.
     from stages.deblur import tiles
 
-    cap = moving_capture
-    in_order, _ = deblur(cap, motion_init="truth", tile=64)
+    cap, in_order = moving_capture, one_at_a_time
     run = tiles._run
     monkeypatch.setattr(tiles, "_run", lambda *a: reversed(list(run(*a))))
     reversed_, _ = deblur(cap, motion_init="truth", tile=64)
