@@ -365,7 +365,9 @@ def dask_client(
                     threads_per_worker=1,
                     processes=True,
                     host="127.0.0.1",
-                    dashboard_address=None,
+                    # (the scheduler's HTTP routes on a free loopback port: two
+                    # clusters at once do not compete for Dask's default 8787)
+                    dashboard_address="127.0.0.1:0",
                     worker_dashboard_address=None,
                     env=dict(WORKER_ENV),
                     silence_logs=logging.ERROR,  # worker heartbeat warnings under load: noise

@@ -73,6 +73,21 @@ def test_a_cluster_started_here_leaves_this_process_its_threads_and_environment(
     assert out.stdout.split() == ["1"]  # (a process started so is limited)
 
 
+def test_two_embedded_clusters_at_once_start_without_a_warning():
+    # Two vet runs on one machine (two batches, a batch and a tiled deblur): Dask's
+    # scheduler serves HTTP on 8787 unless told otherwise, and the second warns that the
+    # port is taken ("Perhaps you already have a cluster running?") on the user's stderr.
+    import warnings
+
+    from stages.cluster import dask_client
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with dask_client(1) as first, dask_client(1) as second:
+            assert first.submit(_worker_omp, pure=False).result() == "1"
+            assert second.submit(_worker_omp, pure=False).result() == "1"
+
+
 def test_a_worker_lets_its_heap_reuse_freed_arrays():
     # A Dask nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536 (every array over
     # 128 kB a fresh mmap); limit_threads, which every worker task calls first, sets
