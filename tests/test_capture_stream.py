@@ -67,11 +67,13 @@ def test_one_time_bin_is_that_bin_of_all_of_them(many_bins_capture, n_bins):
         del cap.meta["measure_subframes"]
 
 
-def _stream_capture(nb, dtype, h=6, w=5, ch=3, seed=0):
+def _stream_capture(nb, dtype, h=6, w=5, ch=3, seed=0, values=(0, 4000)):
+    """A capture of a stream of ``nb`` frames, int16 DN drawn from ``values`` [low, high)
+    (then as ``dtype``), some frames two subframes long."""
     from stages.formats.capture import Capture
 
     rng = np.random.default_rng(seed)
-    measure = rng.integers(0, 4000, (nb, h, w, ch), dtype=np.int16).astype(dtype, copy=False)
+    measure = rng.integers(*values, (nb, h, w, ch), dtype=np.int16).astype(dtype, copy=False)
     times = np.stack([np.arange(nb), np.arange(1, nb + 1)], 1) * 0.0075
     return Capture(
         I=np.ones((h, w, ch), np.float32),

@@ -11,23 +11,14 @@ import pytest
 from stages.formats.capture import MOTION_BINS, Capture, measure_bin_edges
 from stages.formats.stream_sums import StreamSums, serves, summed_stream
 from stages.rig import RigParams
+from tests.test_capture_stream import _stream_capture
 
 
-def _stream(nb: int = 131, dtype=np.int16, h: int = 5, w: int = 4, ch: int = 3) -> Capture:
-    # Values over the whole int16 range (negative ones too): every sum stays exact.
-    rng = np.random.default_rng(3)
-    info = np.iinfo(dtype)
-    measure = rng.integers(info.min, info.max, (nb, h, w, ch), endpoint=True, dtype=dtype)
-    times = np.stack([np.arange(nb), np.arange(1, nb + 1)], 1) * 0.0075
-    return Capture(
-        I=np.ones((h, w, ch), np.float32),
-        T=np.full((h, w), 0.5, np.float32),
-        channels=["R", "G", "B"][:ch],
-        rig=RigParams(sensor_size=(w, h)),
-        measure=measure,
-        measure_times=times,
-        meta={"measure_subframes": [1 + (k % 5 == 0) for k in range(nb)], "note": "kept"},
-    )
+def _stream(nb: int = 131) -> Capture:
+    # int16 DN over the whole range (negative ones too): every sum stays exact.
+    cap = _stream_capture(nb, np.int16, h=5, w=4, seed=3, values=(-32768, 32767))
+    cap.meta["note"] = "kept"  # (the rest of the metadata goes with every bin)
+    return cap
 
 
 def _same(a: Capture, b: Capture) -> None:
@@ -71,7 +62,7 @@ def test_a_bin_not_made_of_whole_sums_is_refused():
     ],
 )
 def test_sums_serve_only_where_they_are_exact(dtype, frames, ok):
-    cap = _stream(nb=frames, dtype=np.int16)
+    cap = _stream(nb=frames)
     cap.measure = cap.measure.astype(dtype)
     assert measure_bin_edges(frames, 16)[-1] == frames
     assert serves(cap, 16, (MOTION_BINS, 16)) is ok

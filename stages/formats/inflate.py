@@ -1,7 +1,8 @@
-"""Deflated zip members read with ISA-L's inflate (python-isal), several times as fast
-as the zlib that :mod:`zipfile` uses: a capture's measuring stream, an npz member a frame,
-is most of what reading a capture costs. Where ``isal`` is missing, or a member is stored,
-encrypted or compressed otherwise, :mod:`zipfile` reads it as before.
+"""Deflated zip members read with ISA-L's inflate (python-isal), faster than the zlib
+that :mod:`zipfile` uses: a capture's measuring stream, an npz member a frame, is most of
+what reading a capture costs (``tests/benchmarks/bench_capture_io.py`` times it). Where
+``isal`` is missing, or a member is stored, encrypted or compressed otherwise,
+:mod:`zipfile` reads it as before.
 
 :func:`open_member` is a readable file object over the member's data, checked as
 :mod:`zipfile` checks it: its local header, its inflated size (never more than the
