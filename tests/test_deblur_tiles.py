@@ -191,16 +191,30 @@ def test_tiles_on_an_embedded_cluster_are_scattered_beside_their_tasks(
     moving_capture, one_at_a_time, monkeypatch
 ):
     # Each tile's data goes to the workers beside its task (no large task graph: Dask
-    # warns of one over its threshold, lowered here below a tile's data), the next tiles
-    # submitted as others finish; the image is the one solved in-process.
+    # warns of one over its threshold, lowered here below a tile's data), at most
+    # DASK_AHEAD tiles a worker in flight, the next submitted as others finish; the
+    # image is the one solved in-process.
     import warnings
 
     import dask
+    import distributed
 
     from stages.deblur import tiles
 
+    in_flight = []
+
+    class Watched(distributed.as_completed):  # (how many tiles are out, at each step)
+        def __init__(self, futures, **kw):
+            super().__init__(futures, **kw)
+            in_flight.append(self.count())
+
+        def add(self, future):
+            super().add(future)
+            in_flight.append(self.count())
+
     cap, alone = moving_capture, one_at_a_time
     monkeypatch.setattr(tiles, "DASK_AHEAD", 1)  # (tiles submitted as others finish)
+    monkeypatch.setattr(distributed, "as_completed", Watched)
     with (
         dask.config.set({"distributed.admin.large-graph-warning-threshold": "20kB"}),
         warnings.catch_warnings(),
@@ -209,6 +223,8 @@ def test_tiles_on_an_embedded_cluster_are_scattered_beside_their_tasks(
         spread, _ = deblur(cap, motion_init="truth", tile=64, workers=2)
     assert spread.meta["tiles"]["executor"].startswith("dask LocalCluster, 2 worker")
     assert spread.meta["tiles"]["count"] == alone.meta["tiles"]["count"] > 2
+    assert len(in_flight) == spread.meta["tiles"]["count"] - 1  # (the first two, then one each)
+    assert max(in_flight) <= 2  # (DASK_AHEAD x 2 workers)
     np.testing.assert_array_equal(spread.radiance, alone.radiance)
 
 

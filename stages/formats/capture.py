@@ -69,6 +69,14 @@ def measure_bin_edges(n_subframes: int, n_bins: int) -> np.ndarray:
     return np.linspace(0, n_subframes, n_bins + 1).round().astype(int)
 
 
+def bin_span(n_images: int, n_bins: int, k: int) -> tuple[int, int]:
+    """The measuring images ``[a, b)`` that bin ``k`` of :meth:`Capture.time_bins`
+    ``(n_bins)`` sums, of ``n_images`` (each its own bin where there are no more of them
+    than bins)."""
+    edges = measure_bin_edges(n_images, n_bins) if n_images > n_bins else np.arange(n_images + 1)
+    return int(edges[k]), int(edges[k + 1])
+
+
 def bin_times(measure_times: np.ndarray, n_bins: int) -> np.ndarray:
     """The ``[start, end)`` times (B, 2) s of measuring images with ``measure_times``
     (F, 2) summed into ``n_bins`` time bins (:meth:`Capture.time_bins`)."""
@@ -234,9 +242,7 @@ class Capture:
         others."""
         from dataclasses import replace
 
-        n = self.measure.shape[0]
-        edges = measure_bin_edges(n, n_bins) if n > n_bins else np.arange(n + 1)
-        a, b = int(edges[k]), int(edges[k + 1])
+        a, b = bin_span(self.measure.shape[0], n_bins, k)
         meta = dict(self.meta)
         meta["measure_subframes"] = [int(c) for c in self.measure_counts()[a:b]]
         part = replace(

@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .capture import Capture, bin_times, measure_bin_edges
+from .capture import Capture, bin_span, bin_times, measure_bin_edges
 
 #: Float32 holds every integer of at most this magnitude exactly.
 EXACT_FLOAT32 = 1 << 24
@@ -54,9 +54,7 @@ class StreamSums:
     def time_bin(self, n_bins: int, k: int) -> Capture:
         """As :meth:`Capture.time_bin` of the stream: bin ``k`` of ``n_bins``, summed
         from the whole bins it spans (float32 (1, H, W, C))."""
-        n = self.measure_shape[0]
-        edges = measure_bin_edges(n, n_bins) if n > n_bins else np.arange(n + 1)
-        a, b = int(edges[k]), int(edges[k + 1])
+        a, b = bin_span(self.measure_shape[0], n_bins, k)
         i, j = np.searchsorted(self.edges, [a, b])
         if i >= len(self.edges) or j >= len(self.edges) or self.edges[i] != a or self.edges[j] != b:
             raise ValueError(f"subframes {a}:{b} are not whole bins of the stream's sums")
