@@ -294,3 +294,78 @@ def test_bins_some_of_which_have_no_convolutions_are_all_matrices(monkeypatch):
     w = rng.random((mixed.shape[0], 1))
     np.testing.assert_allclose(mixed.mv(x), lean.mv(x), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(mixed.normal(x, w), lean.normal(x, w), rtol=1e-5, atol=1e-6)
+
+
+def test_an_image_step_holds_one_copy_of_the_bins_weights_and_one_piece(monkeypatch):
+    # After the first step the joint solve hands each image step its bins' robust
+    # weights only as the step takes them (bin_weights: the convolutions' weights and
+    # the right-hand side), keeping no (B N, C) weights of its own through the solve;
+    # on one thread the normal product's pieces are made as they are summed, not all
+    # held at once. The image is the same to the bit as the other way round.
+    from stages.deblur import deblur, image_step, joint
+
+    cap = simulate(
+        builtin_interior(96, 64),
+        parse_motion("translate:30,0"),
+        RigParams(sensor_size=(96, 64)),
+        seed=2,
+        methods=["vet"],
+        measure_bins=8,
+    )["vet"]
+    bins_bytes = observations(cap).yb.nbytes
+    monkeypatch.setattr(image_step, "solve_threads", lambda: 1)
+    handed, held_at, peaks = [], [], []
+    solve, pcg = joint.solve_image, image_step.pcg
+
+    def recorded(obs, A, Ab, w, wb, *args, **kw):
+        bw = isinstance(wb, image_step.BinWeights)
+        handed.append("noise" if wb is obs.wb else "prepared" if bw and wb.w is None else "other")
+        return solve(obs, A, Ab, w, wb, *args, **kw)
+
+    def traced_pcg(*args, **kw):  # (what is held through the iterations; their peak)
+        held_at.append(tracemalloc.get_traced_memory()[0])
+        tracemalloc.reset_peak()
+        out = pcg(*args, **kw)
+        peaks.append(tracemalloc.get_traced_memory()[1] - held_at[-1])
+        return out
+
+    monkeypatch.setattr(joint, "solve_image", recorded)
+    monkeypatch.setattr(image_step, "pcg", traced_pcg)
+
+    def run() -> tuple[np.ndarray, list[int], list[int]]:
+        handed.clear(), held_at.clear(), peaks.clear()
+        tracemalloc.start()
+        try:
+            return deblur(cap)[0].radiance, list(held_at), list(peaks)
+        finally:
+            tracemalloc.stop()
+
+    run()  # (what a first run leaves behind: caches)
+    lean, held, peak = run()
+    assert handed[0] == "noise" and set(handed[1:]) == {"prepared"} and len(handed) > 2
+    monkeypatch.setattr(joint, "bin_weights", lambda Ab, wb, yb: wb)  # (kept by the caller)
+    kept, held_kept, _ = run()
+    monkeypatch.setattr(image_step, "_Inline", _Eager)
+    eager, _, peak_eager = run()
+    np.testing.assert_array_equal(lean, kept)
+    np.testing.assert_array_equal(lean, eager)
+    # (The first step fits the noise weights themselves: nothing to hand over.)
+    assert abs(held[0] - held_kept[0]) < 0.1 * bins_bytes
+    assert all(a < b - 0.5 * bins_bytes for a, b in zip(held[1:], held_kept[1:], strict=True))
+    pieces = 3 * 5 * 96 * 64 * 4  # (channels x (bins' groups + the VET image's) x (N,) float32)
+    assert all(a < b - 0.5 * pieces for a, b in zip(peak, peak_eager, strict=True))
+
+
+class _Done:
+    def __init__(self, value):
+        self.value = value
+
+    def result(self):
+        return self.value
+
+
+class _Eager:
+    """An executor on one thread that makes each piece as it is submitted."""
+
+    def submit(self, fn, *args):
+        return _Done(fn(*args))

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -62,12 +63,30 @@ def smooth_weights(
     return sx, sy
 
 
+@dataclass
+class BinWeights:
+    """The measuring bins' weights ``wb`` (B N, C) as an image step takes them
+    (:func:`bin_weights`): ``split``, each split group's (:meth:`StackedOperator.split_weights`);
+    ``rhs``, the bins' share of the right-hand side ``Ab.T (wb yb)`` (N, C) float64; ``w``,
+    ``wb`` itself where some group is not split (its products read it), else None: the
+    caller then holds no (B N, C) weights through the solve."""
+
+    split: list
+    rhs: np.ndarray
+    w: np.ndarray | None
+
+
+def bin_weights(Ab: StackedOperator, wb: np.ndarray, yb: np.ndarray) -> BinWeights:
+    """``wb`` as :func:`solve_image` takes it, for the bins' data ``yb`` (B N, C)."""
+    return BinWeights(Ab.split_weights(wb), Ab.mvt_weighted(wb, yb), None if Ab.all_split else wb)
+
+
 def solve_image(
     obs: Observations,
     A: sp.csr_matrix,
     Ab: StackedOperator | None,
     w: np.ndarray,
-    wb: np.ndarray | None,
+    wb: np.ndarray | BinWeights | None,
     L: np.ndarray,
     ref: np.ndarray,
     anchor: np.ndarray,
@@ -83,6 +102,8 @@ def solve_image(
 ) -> np.ndarray:
     """One weighted least-squares image step (PCG), ``L`` of shape (H W, C).
 
+    ``wb``: the bins' weights, or them as :func:`bin_weights` makes them (then with
+    ``data_diag``).
     ``free`` (H W,) bool: the pixels re-estimated; the others keep their value in ``L``.
     ``data_diag``: the diagonal of the data terms' normal matrix for the preconditioner
     (computed from ``w``, ``wb`` when not given; any positive approximation will do).
@@ -96,6 +117,9 @@ def solve_image(
     n = h * wd
     AT = A.T  # one transposed view for all the products below
     S = obs.stream
+    prepared = wb if isinstance(wb, BinWeights) else None
+    if prepared is not None:
+        wb = prepared.w
     if data_diag is None:
         data_diag = diag_normal(A, w)
         if Ab is not None:
@@ -104,7 +128,7 @@ def solve_image(
             data_diag = data_diag + S.diag_normal(ws)
     rhs = product(AT, (w * obs.y).astype(np.float32)).astype(np.float64)
     if Ab is not None:
-        rhs += Ab.mvt_weighted(wb, obs.yb)
+        rhs += prepared.rhs if prepared is not None else Ab.mvt_weighted(wb, obs.yb)
     if S is not None:
         rhs += S.adjoint(ws * S.y)
     rhs += anchor_w * anchor
@@ -141,7 +165,8 @@ def solve_image(
         # blocks whatever the threads: the pieces sum in one order, to the same image).
         blocks = row_blocks(A, VET_ROW_BLOCKS)
     # The bins' weights as their convolutions take them, for the whole solve.
-    bins_w = None if Ab is None else Ab.split_weights(wb)
+    bins_w = None if Ab is None else prepared.split if prepared else Ab.split_weights(wb)
+    del prepared  # (the caller's reference, if any, is all that keeps it)
 
     def vet_column(xc: np.ndarray, k: int, b: int) -> np.ndarray:
         if split is not None:
@@ -173,8 +198,9 @@ def solve_image(
         if anchored.size:
             out[anchored] += anchor_w[anchored] * x[anchored]
         data = np.zeros((c, n))  # (each channel's pieces add contiguously)
-        for k, job in jobs:
+        for i, (k, job) in enumerate(jobs):
             data[k] += job.result()
+            jobs[i] = None  # (a piece is let go of once summed)
         out += data.T
         return out
 
@@ -187,14 +213,16 @@ def solve_image(
 
 
 class _Inline:
-    """A stand-in for an executor that runs each call at once (``submit(...).result()``)."""
+    """A stand-in for an executor on one thread: ``submit`` defers the call to its
+    ``result()``, so that the pieces are made one at a time as they are summed, not all
+    held at once."""
 
-    class _Done:
-        def __init__(self, value):
-            self.value = value
+    class _Deferred:
+        def __init__(self, fn, args):
+            self.fn, self.args = fn, args
 
         def result(self):
-            return self.value
+            return self.fn(*self.args)
 
     def submit(self, fn, *args):
-        return self._Done(fn(*args))
+        return self._Deferred(fn, args)

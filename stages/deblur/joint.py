@@ -76,7 +76,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .camera_grid import bins_on_vet_grid
-from .image_step import solve_image
+from .image_step import bin_weights, solve_image
 from .joint_options import JointOptions
 from .operator import Layers, motion_layers
 from .path_steps import robust_misfit
@@ -341,12 +341,16 @@ def deblur_joint(
                     (_base + k + 1, time.perf_counter(), truth_cb(xf.reshape(h, wd, c)))
                 )
 
+        bw = wb
+        if Ab is not None and wb is not obs.wb:
+            # The robust weights as the solve takes them, held in that form alone.
+            bw, wb = bin_weights(Ab, wb, obs.yb), None
         L = solve_image(
             obs,
             A,
             Ab,
             w,
-            wb,
+            bw,
             L,
             ref,
             anchor,
@@ -360,6 +364,7 @@ def deblur_joint(
             ws=ws,
             still=still_px,
         )
+        del bw
         iters_done += cg_iters
         L = np.where(free[:, None], np.maximum(L, floor), L)
         ts = time.perf_counter()
@@ -376,6 +381,7 @@ def deblur_joint(
                     vel = layers.velocity[layers.label].astype(np.float32)
                     log.debug("deblur: path step %d fitted worse; back to the best path", it)
         if not last:  # (the robust weights and the motion step serve the next solve)
+            w = wb = None  # (this step's let go of before the next step's are made)
             w = _robust(r, obs.w, opts.cauchy_k)
             if Ab is not None:
                 wb = _robust(rb, obs.wb, opts.cauchy_k)

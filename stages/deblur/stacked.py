@@ -111,6 +111,12 @@ class StackedOperator:
         #: sampling multiplies): where the motion moves an integration path.
         self.blurs = [g[0] for g in self.groups if g[0] is not None] if blurs is None else blurs
 
+    @property
+    def all_split(self) -> bool:
+        """Whether every group goes through its convolutions (:meth:`normal_column` then
+        reads the weights only as :meth:`split_weights` makes them)."""
+        return all(s is not None for s in self.splits)
+
     def moving_reach(self) -> np.ndarray:
         """The pixels some bin's moving integration path reads, bool (N,) (see
         :func:`~stages.deblur.still_pixels.moving_support`)."""
