@@ -237,20 +237,25 @@ def test_smoothness_normal_product_is_the_adjoint_of_the_weighted_gradient():
     assert abs(lhs - rhs) <= 1e-12 * abs(lhs)
 
 
+def _panning_capture(w: int, h: int):
+    """A w x h RGB capture of the built-in scene panning at 30 px/s, with 8 time bins."""
+    return simulate(
+        builtin_interior(w, h),
+        parse_motion("translate:30,0"),
+        RigParams(sensor_size=(w, h)),
+        seed=2,
+        methods=["vet"],
+        measure_bins=8,
+    )["vet"]
+
+
 def test_the_solve_gives_the_same_image_on_one_thread_and_on_several(monkeypatch):
     # The products' pieces are summed in the same order however many threads make
     # them: a worker limited to one thread (Dask) gets the same image to the bit.
     from stages import cluster
     from stages.deblur import deblur, image_step
 
-    cap = simulate(
-        builtin_interior(64, 48),
-        parse_motion("translate:30,0"),
-        RigParams(sensor_size=(64, 48)),
-        seed=2,
-        methods=["vet"],
-        measure_bins=8,
-    )["vet"]
+    cap = _panning_capture(64, 48)
     got = {}
     for threads in (1, 3):
         monkeypatch.setattr(image_step, "solve_threads", lambda t=threads: t)
@@ -304,14 +309,7 @@ def test_an_image_step_holds_one_copy_of_the_bins_weights_and_one_piece(monkeypa
     # held at once. The image is the same to the bit as the other way round.
     from stages.deblur import deblur, image_step, joint
 
-    cap = simulate(
-        builtin_interior(96, 64),
-        parse_motion("translate:30,0"),
-        RigParams(sensor_size=(96, 64)),
-        seed=2,
-        methods=["vet"],
-        measure_bins=8,
-    )["vet"]
+    cap = _panning_capture(96, 64)
     bins_bytes = observations(cap).yb.nbytes
     monkeypatch.setattr(image_step, "solve_threads", lambda: 1)
     handed, held_at, peaks = [], [], []
