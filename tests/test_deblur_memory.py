@@ -312,12 +312,13 @@ def test_an_image_step_holds_one_copy_of_the_bins_weights_and_one_piece(monkeypa
     cap = _panning_capture(96, 64)
     bins_bytes = observations(cap).yb.nbytes
     monkeypatch.setattr(image_step, "solve_threads", lambda: 1)
-    handed, held_at, peaks = [], [], []
+    handed, held_at, peaks, last = [], [], [], []
     solve, pcg = joint.solve_image, image_step.pcg
 
     def recorded(obs, A, Ab, w, wb, *args, **kw):
         bw = isinstance(wb, image_step.BinWeights)
         handed.append("noise" if wb is obs.wb else "prepared" if bw and wb.w is None else "other")
+        last[:] = [(obs, A, Ab, w, wb, *args), kw]
         return solve(obs, A, Ab, w, wb, *args, **kw)
 
     def traced_pcg(*args, **kw):  # (what is held through the iterations; their peak)
@@ -331,7 +332,8 @@ def test_an_image_step_holds_one_copy_of_the_bins_weights_and_one_piece(monkeypa
     monkeypatch.setattr(image_step, "pcg", traced_pcg)
 
     def run() -> tuple[np.ndarray, list[int], list[int]]:
-        handed.clear(), held_at.clear(), peaks.clear()
+        for seen in (handed, held_at, peaks):
+            seen.clear()
         tracemalloc.start()
         try:
             return deblur(cap)[0].radiance, list(held_at), list(peaks)
@@ -352,6 +354,11 @@ def test_an_image_step_holds_one_copy_of_the_bins_weights_and_one_piece(monkeypa
     assert all(a < b - 0.5 * bins_bytes for a, b in zip(held[1:], held_kept[1:], strict=True))
     pieces = 3 * 5 * 96 * 64 * 4  # (channels x (bins' groups + the VET image's) x (N,) float32)
     assert all(a < b - 0.5 * pieces for a, b in zip(peak, peak_eager, strict=True))
+    # Weights so given carry no diagonal for the preconditioner: the caller passes it.
+    args, kw = last
+    prepared = image_step.bin_weights(args[2], args[0].wb, args[0].yb)
+    with pytest.raises(ValueError, match="data_diag"):
+        solve(*args[:4], prepared, *args[5:], **dict(kw, data_diag=None))
 
 
 class _Done:

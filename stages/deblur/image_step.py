@@ -119,6 +119,8 @@ def solve_image(
     S = obs.stream
     prepared = wb if isinstance(wb, BinWeights) else None
     if prepared is not None:
+        if data_diag is None:
+            raise ValueError("bins' weights given as bin_weights makes them need data_diag")
         wb = prepared.w
     if data_diag is None:
         data_diag = diag_normal(A, w)
@@ -166,7 +168,6 @@ def solve_image(
         blocks = row_blocks(A, VET_ROW_BLOCKS)
     # The bins' weights as their convolutions take them, for the whole solve.
     bins_w = None if Ab is None else prepared.split if prepared else Ab.split_weights(wb)
-    del prepared  # (the caller's reference, if any, is all that keeps it)
 
     def vet_column(xc: np.ndarray, k: int, b: int) -> np.ndarray:
         if split is not None:
@@ -198,9 +199,8 @@ def solve_image(
         if anchored.size:
             out[anchored] += anchor_w[anchored] * x[anchored]
         data = np.zeros((c, n))  # (each channel's pieces add contiguously)
-        for i, (k, job) in enumerate(jobs):
+        for k, job in jobs:
             data[k] += job.result()
-            jobs[i] = None  # (a piece is let go of once summed)
         out += data.T
         return out
 

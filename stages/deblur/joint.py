@@ -381,7 +381,6 @@ def deblur_joint(
                     vel = layers.velocity[layers.label].astype(np.float32)
                     log.debug("deblur: path step %d fitted worse; back to the best path", it)
         if not last:  # (the robust weights and the motion step serve the next solve)
-            w = wb = None  # (this step's let go of before the next step's are made)
             w = _robust(r, obs.w, opts.cauchy_k)
             if Ab is not None:
                 wb = _robust(rb, obs.wb, opts.cauchy_k)
