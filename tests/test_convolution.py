@@ -118,7 +118,7 @@ def test_stacked_bins_normal_product_matches_the_sparse_one():
     w = np.random.default_rng(8).random((len(parts) * n, 2))
     for _ in range(2):  # (then the same array's values changed: weights made anew)
         split_w = split.split_weights(w)
-        assert plain.split_weights(w) == [None] * len(plain.groups)
+        assert plain.split_weights(w).groups == [None] * len(plain.groups)
         for c in range(2):
             xc = np.ascontiguousarray(x[:, c])
             want = sum(plain.normal_column(g, xc, w, c) for g in range(len(plain.groups)))

@@ -22,7 +22,7 @@ import scipy.sparse as sp
 from ..cluster import opencv_single_threaded, solve_threads
 from .joint_options import EDGE_REL_MIN, JointOptions
 from .problem import Observations, grad, pcg, smooth_normal
-from .stacked import StackedOperator, diag_normal, product, row_blocks
+from .stacked import SplitWeights, StackedOperator, diag_normal, product, row_blocks
 
 #: Blocks of rows the VET image's normal product is made in (:func:`solve_image`).
 VET_ROW_BLOCKS = 2
@@ -66,12 +66,13 @@ def smooth_weights(
 @dataclass
 class BinWeights:
     """The measuring bins' weights ``wb`` (B N, C) as an image step takes them
-    (:func:`bin_weights`): ``split``, each split group's (:meth:`StackedOperator.split_weights`);
+    (:func:`bin_weights`): ``split``, as the split groups take them
+    (:meth:`StackedOperator.split_weights`);
     ``rhs``, the bins' share of the right-hand side ``Ab.T (wb yb)`` (N, C) float64; ``w``,
     ``wb`` itself where some group is not split (its products read it), else None: the
     caller then holds no (B N, C) weights through the solve."""
 
-    split: list
+    split: SplitWeights
     rhs: np.ndarray
     w: np.ndarray | None
 

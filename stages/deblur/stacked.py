@@ -6,9 +6,12 @@ pixels and C channels; products are float32 unless stated."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
+from .band import Band, band_worth, make_band, offsets
 from .convolution import ConvolutionSplit, SplitOperator, _SplitAdjoint
 
 #: Mean non-zeros per row above which a product with several columns goes one column at
@@ -36,6 +39,50 @@ def product(M: sp.spmatrix, x: np.ndarray) -> np.ndarray:
             out[:, c] = M @ np.ascontiguousarray(x[:, c], np.float32)
         return out
     return np.asarray(M @ np.ascontiguousarray(x, np.float32), np.float32)
+
+
+class RestRows:
+    """The rows no kernel takes of several splits (:class:`ConvolutionSplit`, each's
+    ``R``) stacked as one CSR matrix on the columns they read, so that their weighted
+    normal product is two sparse products, not two per split."""
+
+    def __init__(self, parts: list[ConvolutionSplit]):
+        blocks = []
+        for part in parts:
+            R = part.R
+            cols = R.indices if part.cols is None else part.cols[R.indices]
+            n = part.shape[0] * part.shape[1]
+            blocks.append(sp.csr_matrix((R.data, cols, R.indptr), (R.shape[0], n)))
+        R = sp.vstack(blocks, format="csr")
+        used = np.bincount(R.indices, minlength=R.shape[1]) > 0
+        #: The columns read (ascending), and the stack on them.
+        self.cols = np.flatnonzero(used)
+        at = np.cumsum(used, dtype=np.int64) - 1
+        self.R = sp.csr_matrix((R.data, at[R.indices], R.indptr), (R.shape[0], self.cols.size))
+        self.RT = self.R.T
+
+    def normal(self, x: np.ndarray, wt: np.ndarray, out: np.ndarray) -> None:
+        """Add ``R.T diag(wt) R x`` to ``out``: ``x``, ``out`` (N,) float32, ``wt`` the
+        rows' weights, the parts' one after the other."""
+        if not self.R.nnz:
+            return
+        v = self.R @ x[self.cols]
+        v *= wt
+        out[self.cols] += self.RT @ v
+
+
+@dataclass
+class SplitWeights:
+    """The bins' row weights as their split groups take them
+    (:meth:`StackedOperator.split_weights`): ``groups``, per group (None where not
+    split), per channel, each part's (:meth:`ConvolutionSplit.weights`); or, where the
+    parts are banded (``StackedOperator.banded``), ``groups`` None, ``bands`` the band
+    of every part's kernels per channel (:mod:`stages.deblur.band`) and ``rests`` the
+    weights of the stacked other rows per channel (:class:`RestRows`)."""
+
+    groups: list | None
+    bands: list[Band] | None = None
+    rests: list[np.ndarray] | None = None
 
 
 #: Groups the measuring bins' operators are stacked into (:class:`StackedOperator`):
@@ -85,7 +132,16 @@ class StackedOperator:
             splits = list(
                 in_order(lambda i: ConvolutionSplit.of(parts[i], image_shape), len(parts))
             )
-        step = -(-len(parts) // min(BIN_GROUPS, len(parts)))
+        #: The parts' kernels as one band (:mod:`stages.deblur.band`) and their other rows
+        #: as one stack (:class:`RestRows`), where the parts are splits alone and the band
+        #: costs less than the kernels' convolutions: the parts are then one group.
+        self.banded: tuple[list, RestRows] | None = None
+        if self.parts is not None:
+            kernels = [k for part in self.parts for k in part.kernels]
+            if kernels and band_worth(kernels):
+                self.banded = (offsets(kernels), RestRows(self.parts))
+        groups = 1 if self.banded else min(BIN_GROUPS, len(parts))
+        step = -(-len(parts) // groups)
         #: (stack, its transposed view, first row, end row) of each group (the stack
         #: and its view None where the parts are splits alone).
         self.groups = []
@@ -174,23 +230,43 @@ class StackedOperator:
                 out[:, c] += part.adjoint(np.asarray(y, np.float32)).reshape(-1)
         return out
 
-    def split_weights(self, w: np.ndarray) -> list[list[list] | None]:
-        """The row weights ``w`` (B N, C) as the split groups take them: per group, per
-        channel, each part's (:meth:`ConvolutionSplit.weights`); None for a group that is
-        not split. Made once for the products of one ``w`` (:meth:`normal_column`)."""
-        n = self.shape[1]
-        return [
-            None
-            if split is None
-            else [
-                [part.weights(w[r0 + i * n : r0 + (i + 1) * n, c]) for i, part in enumerate(split)]
-                for c in range(w.shape[1])
-            ]
-            for split, (_, _, r0, _) in zip(self.splits, self.groups, strict=True)
+    def split_weights(self, w: np.ndarray) -> SplitWeights:
+        """The row weights ``w`` (B N, C) as the split groups take them
+        (:class:`SplitWeights`), made once for the products of one ``w``
+        (:meth:`normal_column`). Where the parts are banded, each part's weights go into
+        the channel's band and other rows' weights as they are made."""
+        if self.banded is not None:
+            offs, rest = self.banded
+            bands, rests = [], []
+            for c in range(w.shape[1]):
+                rw = []
+
+                def pairs(c=c, rw=rw):
+                    for _, _, part, pw in self._part_weights(w, c):
+                        yield from zip(part.kernels, pw, strict=False)
+                        rw.append(pw[-1])
+
+                bands.append(make_band(pairs(), offs, self.image_shape))
+                rests.append(np.concatenate(rw) if rw else np.zeros(0, np.float32))
+            return SplitWeights(None, bands, rests)
+        groups = [
+            None if split is None else [[] for _ in range(w.shape[1])] for split in self.splits
         ]
+        for c in range(w.shape[1]):
+            for g, _, _, pw in self._part_weights(w, c):
+                groups[g][c].append(pw)
+        return SplitWeights(groups)
+
+    def _part_weights(self, w: np.ndarray, c: int):
+        """``(group, index in it, part, its weights)`` of every split part for channel
+        ``c`` of ``w`` (:meth:`ConvolutionSplit.weights`), made one at a time."""
+        n = self.shape[1]
+        for g, (split, (_, _, r0, _)) in enumerate(zip(self.splits, self.groups, strict=True)):
+            for i, part in enumerate(split or []):
+                yield g, i, part, part.weights(w[r0 + i * n : r0 + (i + 1) * n, c])
 
     def normal_column(
-        self, g: int, xc: np.ndarray, w: np.ndarray, c: int, split_w: list | None = None
+        self, g: int, xc: np.ndarray, w: np.ndarray, c: int, split_w: SplitWeights | None = None
     ) -> np.ndarray:
         """Group ``g``'s share of ``stack.T diag(w) stack @ x`` for channel ``c``:
         ``xc`` that channel of ``x`` (N,) contiguous float32, ``w`` (B N, C); (N,)
@@ -200,10 +276,14 @@ class StackedOperator:
         M, MT, r0, r1 = self.groups[g]
         split = self.splits[g]
         if split is not None:
-            weights = (split_w or self.split_weights(w))[g][c]
+            sw = split_w or self.split_weights(w)
             out = np.zeros(self.image_shape, np.float32)
             x = xc.reshape(self.image_shape)
-            for part, pw in zip(split, weights, strict=True):
+            if sw.bands is not None:  # (the one group)
+                sw.bands[c].normal(x, out)
+                self.banded[1].normal(xc, sw.rests[c], out.reshape(-1))
+                return out.reshape(-1)
+            for part, pw in zip(split, sw.groups[g][c], strict=True):
                 part.normal(x, pw, out)
             return out.reshape(-1)
         y = M @ xc

@@ -10,7 +10,10 @@ times ``M.T diag(w) M x`` both ways (split as the deblur splits them: the VET im
 along its assembly's stencil groups only, the bins' also by a search of their rows) (the median of several, one thread) and checks that
 they agree. Prints per motion and operator: non-zeros per row, the share of rows the
 kernels take, milliseconds for the sparse product and the split, their ratio, and the
-largest difference relative to the largest value.
+largest difference relative to the largest value. Then, per motion, the 16 bins'
+normal product through their splits one by one against their band and stacked other rows
+(stages.deblur.band, where made): the offsets the band holds, the time to make it for one
+set of weights against the splits' weights alone, both products' milliseconds and their ratio.
 
 Run: ``.venv/bin/python -m tests.benchmarks.bench_products [WxH]``.
 """
@@ -116,6 +119,7 @@ def main(size: str = "474x559") -> list[dict]:
                 blur_matrix(vel, [Window(a, b, 1.0)], step_px=1.5, min_dt=FRAME_S / SUBFRAMES)
                 for a, b in zip(edges[:-1], edges[1:], strict=True)
             ]
+            band = _band_row(parts["bins"], shape)
             for op, mats in parts.items():
                 res = [_compare(M, shape, seed, op == "bins") for seed, M in enumerate(mats)]
                 nnz = sum(r[0] for r in res)
@@ -134,7 +138,54 @@ def main(size: str = "474x559") -> list[dict]:
                     f" {ratio_s:>6s} {err_s:>9s}",
                     flush=True,
                 )
+            if band is not None:
+                conv, ms, build, offs, err = band
+                rows.append(dict(motion=name, operator="band", offsets=offs, conv=conv, band=ms))
+                print(
+                    f"{name:36s} {'band':8s} {offs:2d} offsets, weights {build[0]:.1f} ms"
+                    f" (without it {build[1]:.1f} ms)"
+                    f" {conv:9.2f} {ms:8.2f} {conv / ms:6.2f} {err:9.1e}",
+                    flush=True,
+                )
     return rows
+
+
+def _band_row(mats, shape):
+    """The bins' normal product through their splits one by one against their band and
+    stacked other rows (:attr:`StackedOperator.banded`), one set of weights: (splits' ms,
+    band's ms, (ms to make the weights with the band, without it), offsets held, largest difference relative to the largest
+    value), or None where some bin does not split or the band would cost more."""
+    from stages.deblur.stacked import StackedOperator
+
+    splits = [ConvolutionSplit.of(M, shape) for M in mats]
+    if any(s is None for s in splits):
+        return None
+    S = StackedOperator(splits)
+    if S.banded is None:
+        return None
+    n = shape[0] * shape[1]
+    rng = np.random.default_rng(0)
+    x = rng.random(n).astype(np.float32)
+    w = rng.random((len(splits) * n, 1)).astype(np.float32)
+    each = [s.weights(w[i * n : (i + 1) * n, 0]) for i, s in enumerate(splits)]
+    out = np.zeros(shape, np.float32)
+
+    def conv():
+        out[...] = 0
+        for s, pw in zip(splits, each, strict=True):
+            s.normal(x.reshape(shape), pw, out)
+
+    ms_conv = _median_ms(conv)
+    want = out.ravel().copy()
+    build = (
+        _median_ms(lambda: S.split_weights(w)),
+        _median_ms(lambda: [s.weights(w[i * n : (i + 1) * n, 0]) for i, s in enumerate(splits)]),
+    )
+    sw = S.split_weights(w)
+    got = S.normal_column(0, x, w, 0, sw)
+    ms = _median_ms(lambda: S.normal_column(0, x, w, 0, sw))
+    err = float(np.abs(got - want).max() / np.abs(want).max())
+    return ms_conv, ms, build, len(S.banded[0]), err
 
 
 if __name__ == "__main__":
