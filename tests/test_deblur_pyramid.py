@@ -76,3 +76,20 @@ def test_coarse_level_gives_the_fine_solve_a_better_start():
         return stops_error(img.radiance, cap.truth, cap.T, cap.rig.frame_s)["dark"]["rms"]
 
     assert dark_rms(1) < 0.9 * dark_rms(0)
+
+
+def test_block_sum_adds_each_blocks_children_in_row_major_order():
+    rng = np.random.default_rng(2)
+    a = rng.random((7, 9, 3)) * 1e6  # (odd: the last row and column are dropped)
+    want = np.empty((3, 4, 3))
+    for i in range(3):
+        for j in range(4):
+            b = a[2 * i : 2 * i + 2, 2 * j : 2 * j + 2]
+            want[i, j] = ((b[0, 0] + b[0, 1]) + b[1, 0]) + b[1, 1]
+    got = block_sum(a)
+    assert got.dtype == np.float64 and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, want)
+    # Booleans are counted, not or-ed.
+    mask = np.array([[True, True, False], [True, False, False]])
+    np.testing.assert_array_equal(block_sum(mask), [[3]])
+    assert block_sum(np.ones((4, 4), np.float32)).dtype == np.float32

@@ -29,8 +29,15 @@ def _blocks(a: np.ndarray, h: int, w: int) -> np.ndarray:
 
 
 def block_sum(a: np.ndarray) -> np.ndarray:
-    """Sum over 2 x 2 blocks of ``(H, W, ...)`` (odd last row/column dropped)."""
-    return _blocks(a, a.shape[0], a.shape[1]).sum(axis=2)
+    """Sum over 2 x 2 blocks of ``(H, W, ...)`` (odd last row/column dropped), in the
+    children's row-major order; integers and booleans are counted in int64."""
+    h2, w2 = a.shape[0] // 2, a.shape[1] // 2
+    if a.dtype.kind in "biu":
+        a = a.astype(np.int64)
+    out = a[0 : 2 * h2 : 2, 0 : 2 * w2 : 2] + a[0 : 2 * h2 : 2, 1 : 2 * w2 : 2]
+    out += a[1 : 2 * h2 : 2, 0 : 2 * w2 : 2]
+    out += a[1 : 2 * h2 : 2, 1 : 2 * w2 : 2]
+    return out
 
 
 def block_sum_matrix(h: int, w: int):
