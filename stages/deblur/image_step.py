@@ -20,12 +20,16 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..cluster import opencv_single_threaded, solve_threads
+from .band import Band
 from .joint_options import EDGE_REL_MIN, JointOptions
-from .problem import Observations, grad, pcg, smooth_normal
+from .problem import Observations, grad, pcg
 from .stacked import SplitWeights, StackedOperator, diag_normal, product, row_blocks
 
 #: Blocks of rows the VET image's normal product is made in (:func:`solve_image`).
 VET_ROW_BLOCKS = 2
+#: The smoothness's band (:class:`~stages.deblur.band.Band`): a pixel, its right and its
+#: lower neighbour.
+SMOOTH_OFFSETS = [(0, 0), (0, 1), (1, 0)]
 
 
 def smooth_weights(
@@ -61,6 +65,24 @@ def smooth_weights(
     sx[:, -1] = 0
     sy[-1] = 0
     return sx, sy
+
+
+def smooth_bands(sx: np.ndarray, sy: np.ndarray) -> tuple[list[Band], np.ndarray]:
+    """The smoothness's normal product, ``grad_adjoint(sx * gx, sy * gy)`` of an image's
+    ``gx, gy = grad(img)``, as a band per channel (:class:`~stages.deblur.band.Band`,
+    float32: its diagonal, and minus the weights of the x and y differences), and its
+    diagonal (H, W, C) float64, for edge weights ``sx``, ``sy`` (H, W, C) whose last
+    column and row are zero (:func:`smooth_weights`)."""
+    dsm = np.zeros(sx.shape)
+    dsm += sx
+    dsm[:, 1:] += sx[:, :-1]
+    dsm += sy
+    dsm[1:] += sy[:-1]
+    bands = [
+        Band(SMOOTH_OFFSETS, np.stack([dsm[..., k], -sx[..., k], -sy[..., k]]).astype(np.float32))
+        for k in range(sx.shape[2])
+    ]
+    return bands, dsm
 
 
 @dataclass
@@ -145,11 +167,8 @@ def solve_image(
         st = still.reshape(h, wd, 1)
         sx[:, :-1] *= ~(st[:, :-1] & st[:, 1:])
         sy[:-1] *= ~(st[:-1] & st[1:])
-    dsm = np.zeros((h, wd, c))
-    dsm += sx
-    dsm[:, 1:] += sx[:, :-1]
-    dsm += sy
-    dsm[1:] += sy[:-1]
+    smooth, dsm = smooth_bands(sx, sy)
+    del sx, sy
     diag = data_diag + dsm.reshape(n, c)
     del dsm
     diag += anchor_w
@@ -171,20 +190,26 @@ def solve_image(
     bins_w = None if Ab is None else prepared.split if prepared else Ab.split_weights(wb)
 
     def vet_column(xc: np.ndarray, k: int, b: int) -> np.ndarray:
+        # (The smoothness's product with the first block's.)
         if split is not None:
             out = np.zeros((h, wd), np.float32)
             split.normal(xc.reshape(h, wd), split_w[k], out)
-            return out.reshape(-1)
-        Mb, MbT, r0, r1 = blocks[b]
-        y = Mb @ xc
-        y *= w[r0:r1, k]
-        return MbT @ y
+        else:
+            Mb, MbT, r0, r1 = blocks[b]
+            y = Mb @ xc
+            y *= w[r0:r1, k]
+            out = (MbT @ y).reshape(h, wd)
+        if b == 0:
+            smooth[k].normal(xc.reshape(h, wd), out)
+        return out.reshape(-1)
 
     def apply_h(x: np.ndarray) -> np.ndarray:
-        # The data terms' products in pieces (the VET image's and each group of bins',
-        # channel by channel) on the process's threads (scipy's sparse products release
-        # the GIL); inline in a worker limited to one.
-        xs = [np.ascontiguousarray(x[:, k], np.float32) for k in range(c)]
+        # ``x`` and the product (C, N), a channel's unknowns contiguous. The terms'
+        # products in pieces (the VET image's with the smoothness's and each group of
+        # bins', channel by channel) on the process's threads (scipy's sparse products
+        # and numpy's and OpenCV's passes release the GIL); inline in a worker limited
+        # to one.
+        xs = [x[k].astype(np.float32) for k in range(c)]
         jobs = [
             (k, pool.submit(vet_column, xs[k], k, b)) for k in range(c) for b in range(len(blocks))
         ]
@@ -194,23 +219,24 @@ def solve_image(
                 for k in range(c)
                 for g in range(len(Ab.groups))
             ]
-        out = smooth_normal(x.reshape(h, wd, c), sx, sy).reshape(n, c)
+        out = np.zeros((c, n))
         if S is not None:
-            out += S.adjoint(ws * S.apply(x))
+            out += S.adjoint(ws * S.apply(np.ascontiguousarray(x.T))).T
         if anchored.size:
-            out[anchored] += anchor_w[anchored] * x[anchored]
-        data = np.zeros((c, n))  # (each channel's pieces add contiguously)
+            out[:, anchored] += (anchor_w[anchored] * x[:, anchored].T).T
         for k, job in jobs:
-            data[k] += job.result()
-        out += data.T
+            out[k] += job.result()
         return out
 
+    cb = None if callback is None else (lambda k, x: callback(k, x.T))
+    rhs, diag = np.ascontiguousarray(rhs.T), np.ascontiguousarray(diag.T)  # (C, N)
     # (OpenCV's convolutions on the pool's threads, not each on threads of its own.)
     with (
         ThreadPoolExecutor(threads) if threads > 1 else nullcontext(_Inline()) as pool,
         opencv_single_threaded(),
     ):
-        return pcg(apply_h, rhs, L, diag, iters, callback=callback, free=free)
+        x = pcg(apply_h, rhs, np.ascontiguousarray(L.T), diag, iters, callback=cb, free=free)
+    return np.ascontiguousarray(x.T)
 
 
 class _Inline:

@@ -407,32 +407,15 @@ def grad_adjoint(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     return out
 
 
-def smooth_normal(img: np.ndarray, sx: np.ndarray, sy: np.ndarray) -> np.ndarray:
-    """``grad_adjoint(sx * gx, sy * gy)`` for ``gx, gy = grad(img)``, all (H, W, C):
-    the weighted smoothness's normal product, with only the differences' temporaries."""
-    dx = img[:, 1:] - img[:, :-1]
-    dx *= sx[:, :-1]
-    out = np.empty_like(dx, shape=img.shape)
-    out[:, :-1] = -dx
-    out[:, -1] = 0
-    out[:, 1:] += dx
-    del dx
-    dy = img[1:] - img[:-1]
-    dy *= sy[:-1]
-    out[:-1] -= dy
-    out[1:] += dy
-    return out
-
-
 def laplacian(img: np.ndarray) -> np.ndarray:
     """5-point Laplacian with replicated borders, ``(H, W, ...)``."""
     p = np.pad(img, [(1, 1), (1, 1)] + [(0, 0)] * (img.ndim - 2), mode="edge")
     return p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * img
 
 
-def _column_dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Each column's dot product of two (N, C) arrays, (C,) (no (N, C) temporary)."""
-    return np.einsum("ij,ij->j", a, b)
+def _row_dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Each row's dot product of two (C, N) arrays, (C,) (no (C, N) temporary)."""
+    return np.einsum("ij,ij->i", a, b)
 
 
 def pcg(
@@ -445,19 +428,22 @@ def pcg(
     callback: Callable[[int, np.ndarray], None] | None = None,
     free: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Jacobi-preconditioned conjugate gradients, each column an independent system.
+    """Jacobi-preconditioned conjugate gradients, each row an independent system.
 
     Parameters
     ----------
     apply_h : callable
         ``x -> H x`` for ``x`` of the shape of ``b`` (H symmetric positive definite per
-        column).
-    b, x0, diag : ndarray of shape (N, C)
-        Right-hand side, start, and the diagonal of H (preconditioner).
+        row).
+    b, x0, diag : ndarray of shape (C, N)
+        Right-hand side, start, and the diagonal of H (preconditioner): a channel's
+        unknowns contiguous, so that the vector updates and dot products run along them.
     iters : int
         Iterations.
     tol : float
-        Stop when every column's residual norm falls below ``tol`` times its start.
+        Stop when every row's residual norm falls below ``tol`` times its start.
+    callback : callable, optional
+        ``callback(k, x)`` after iteration ``k`` with the current ``x`` (C, N).
     free : ndarray of shape (N,), bool, optional
         Only these unknowns change (the others keep ``x0``): the system solved is ``H``
         restricted to them, with the fixed ones' contribution on the right-hand side.
@@ -466,27 +452,30 @@ def pcg(
     r = b - apply_h(x)
     minv = 1.0 / np.maximum(diag, 1e-300)
     if free is not None:
-        minv = minv * free.reshape(-1, 1)
-        r = r * free.reshape(-1, 1)
+        keep = free.reshape(1, -1)
+        minv *= keep
+        r *= keep
     z = minv * r
     p = z.copy()
-    rz = _column_dots(r, z)
-    r0 = np.sqrt(_column_dots(r, r)) + 1e-300
+    tmp = np.empty_like(p)  # (the updates' scaled vector, made once)
+    rz = _row_dots(r, z)
+    r0 = np.sqrt(_row_dots(r, r)) + 1e-300
     for k in range(iters):
         hp = apply_h(p)
-        php = _column_dots(p, hp)
-        alpha = np.where(php > 0, rz / np.where(php > 0, php, 1), 0.0)
-        x += alpha * p
-        r -= alpha * hp
+        php = _row_dots(p, hp)
+        alpha = np.where(php > 0, rz / np.where(php > 0, php, 1), 0.0)[:, None]
+        x += np.multiply(alpha, p, out=tmp)
+        r -= np.multiply(alpha, hp, out=tmp)
+        del hp
         if free is not None:
-            r *= free.reshape(-1, 1)
+            r *= keep
         if callback is not None:
             callback(k, x)
-        if np.all(np.sqrt(_column_dots(r, r)) < tol * r0):
+        if np.all(np.sqrt(_row_dots(r, r)) < tol * r0):
             break
         np.multiply(minv, r, out=z)
-        rz_new = _column_dots(r, z)
-        beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)
+        rz_new = _row_dots(r, z)
+        beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)[:, None]
         rz = rz_new
         p *= beta  # p = z + beta p, in place
         p += z
