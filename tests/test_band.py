@@ -125,3 +125,21 @@ def test_a_band_is_made_only_where_it_costs_less_than_the_convolutions():
     assert band_worth(short)  # 3 offsets, 5 multiply-adds, against 16 kernels
     assert not band_worth(short[:4])
     assert not band_worth([_kernel(rng, (1, 31), (0, 0))])  # (31 offsets for one kernel)
+
+
+def test_the_sum_of_two_bands_is_one_band_on_their_offsets():
+    rng = np.random.default_rng(7)
+    ka, kb = _kernel(rng, (1, 3), (0, 1)), _kernel(rng, (2, 1), (1, 0))
+    a, b = (
+        make_band([(k, rng.random((H, W)).astype(np.float32))], offsets([k]), (H, W))
+        for k in (ka, kb)
+    )
+    both = a.plus(b)
+    assert both.offsets == [(0, 0), (0, 1), (0, 2), (1, 0)]
+    x = rng.random((H, W)).astype(np.float32)
+    want = np.zeros((H, W), np.float32)
+    a.normal(x, want)
+    b.normal(x, want)
+    got = np.zeros((H, W), np.float32)
+    both.normal(x, got)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)

@@ -88,6 +88,16 @@ class Band:
     offsets: list[tuple[int, int]]
     coeffs: np.ndarray
 
+    def plus(self, other: Band) -> Band:
+        """The band of both products' sum (on the union of their offsets)."""
+        offs = sorted(set(self.offsets) | set(other.offsets))
+        at = {d: i for i, d in enumerate(offs)}
+        coeffs = np.zeros((len(offs), *self.coeffs.shape[1:]), np.float32)
+        for band in (self, other):
+            for d, c in zip(band.offsets, band.coeffs, strict=True):
+                coeffs[at[d]] += c
+        return Band(offs, coeffs)
+
     def normal(self, x: np.ndarray, out: np.ndarray) -> None:
         """Add the band's product with ``x`` to ``out``, both (H, W) float32."""
         h, w = x.shape

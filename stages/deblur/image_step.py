@@ -87,9 +87,9 @@ def smooth_bands(sx: np.ndarray, sy: np.ndarray) -> tuple[list[Band], np.ndarray
 
 @dataclass
 class BinWeights:
-    """The measuring bins' weights ``wb`` (B N, C) as an image step takes them
-    (:func:`bin_weights`): ``split``, as the split groups take them
-    (:meth:`StackedOperator.split_weights`);
+    """The measuring bins' weights ``wb`` (B N, C) as one image step takes them
+    (:func:`bin_weights`; the step adds its smoothness to their band, where they have
+    one): ``split``, as the split groups take them (:meth:`StackedOperator.split_weights`);
     ``rhs``, the bins' share of the right-hand side ``Ab.T (wb yb)`` (N, C) float64; ``w``,
     ``wb`` itself where some group is not split (its products read it), else None: the
     caller then holds no (B N, C) weights through the solve."""
@@ -188,9 +188,14 @@ def solve_image(
         blocks = row_blocks(A, VET_ROW_BLOCKS)
     # The bins' weights as their convolutions take them, for the whole solve.
     bins_w = None if Ab is None else prepared.split if prepared else Ab.split_weights(wb)
+    if bins_w is not None and bins_w.bands is not None:
+        # The smoothness's product in the bins' band (this solve's): one pass per offset
+        # for both where they share one.
+        bins_w.bands = [b.plus(sm) for b, sm in zip(bins_w.bands, smooth, strict=True)]
+        smooth = None
 
     def vet_column(xc: np.ndarray, k: int, b: int) -> np.ndarray:
-        # (The smoothness's product with the first block's.)
+        # (The smoothness's product with the first block's, unless in the bins' band.)
         if split is not None:
             out = np.zeros((h, wd), np.float32)
             split.normal(xc.reshape(h, wd), split_w[k], out)
@@ -199,7 +204,7 @@ def solve_image(
             y = Mb @ xc
             y *= w[r0:r1, k]
             out = (MbT @ y).reshape(h, wd)
-        if b == 0:
+        if b == 0 and smooth is not None:
             smooth[k].normal(xc.reshape(h, wd), out)
         return out.reshape(-1)
 
