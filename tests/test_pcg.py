@@ -48,3 +48,14 @@ def test_fixed_unknowns_keep_their_start():
     f = np.flatnonzero(free)
     want = np.linalg.solve(H[np.ix_(f, f)], b[0, f] - H[np.ix_(f, ~free)] @ x0[0, ~free])
     np.testing.assert_allclose(x[0, f], want, rtol=1e-8)
+
+
+def test_it_stops_once_every_row_is_solved():
+    # A diagonal system: the Jacobi step solves it in one iteration, then nothing is left.
+    rng = np.random.default_rng(2)
+    d = rng.random((2, 50)) + 1
+    b = rng.random((2, 50))
+    seen = []
+    x = pcg(lambda x: d * x, b, np.zeros((2, 50)), d, 20, callback=lambda k, x: seen.append(k))
+    np.testing.assert_allclose(x, b / d)
+    assert seen == [0]

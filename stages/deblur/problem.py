@@ -441,7 +441,8 @@ def pcg(
     iters : int
         Iterations.
     tol : float
-        Stop when every row's residual norm falls below ``tol`` times its start.
+        Stop when every row's preconditioned residual norm, ``sqrt(r M^-1 r)`` with ``M``
+        the diagonal, falls below ``tol`` times its start.
     callback : callable, optional
         ``callback(k, x)`` after iteration ``k`` with the current ``x`` (C, N).
     free : ndarray of shape (N,), bool, optional
@@ -459,22 +460,20 @@ def pcg(
     p = z.copy()
     tmp = np.empty_like(p)  # (the updates' scaled vector, made once)
     rz = _row_dots(r, z)
-    r0 = np.sqrt(_row_dots(r, r)) + 1e-300
+    stop = tol * tol * rz
     for k in range(iters):
         hp = apply_h(p)
         php = _row_dots(p, hp)
         alpha = np.where(php > 0, rz / np.where(php > 0, php, 1), 0.0)[:, None]
         x += np.multiply(alpha, p, out=tmp)
-        r -= np.multiply(alpha, hp, out=tmp)
+        r -= np.multiply(alpha, hp, out=tmp)  # (fixed unknowns' entries unread: z is 0 there)
         del hp
-        if free is not None:
-            r *= keep
         if callback is not None:
             callback(k, x)
-        if np.all(np.sqrt(_row_dots(r, r)) < tol * r0):
-            break
         np.multiply(minv, r, out=z)
         rz_new = _row_dots(r, z)
+        if np.all(rz_new <= stop):
+            break
         beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)[:, None]
         rz = rz_new
         p *= beta  # p = z + beta p, in place
