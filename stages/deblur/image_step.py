@@ -4,9 +4,11 @@ weights and motion, by preconditioned conjugate gradients (:func:`solve_image`).
 The normal product applies the VET image's operator, the measuring bins' and the
 stream's, each weighted, and the edge-preserving relative smoothness
 (:func:`smooth_weights`): the bins' (and the VET image's, where its rows are one stencil
-per exposure time) as shifted convolutions (:mod:`stages.deblur.convolution`), the rest
-as sparse products, in pieces on the process's threads. Shapes: images (H W, C) float64,
-weights of the shape of what they weigh.
+per exposure time) as shifted convolutions (:mod:`stages.deblur.convolution`), the bins'
+short ones with the smoothness as one band where that costs less
+(:mod:`stages.deblur.band`), the rest as sparse products, in float32 pieces on the
+process's threads. Shapes: images (H W, C) float64 (the conjugate gradients' vectors
+(C, H W), a channel contiguous), weights of the shape of what they weigh.
 """
 
 from __future__ import annotations
