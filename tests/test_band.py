@@ -143,3 +143,25 @@ def test_the_sum_of_two_bands_is_one_band_on_their_offsets():
     got = np.zeros((H, W), np.float32)
     both.normal(x, got)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_a_deblur_through_the_band_is_the_one_through_the_convolutions(monkeypatch):
+    # The whole solve, the bins' band holding the smoothness too, against the same solve
+    # with the bins' convolutions and the smoothness's own band: the same image up to
+    # float32 sums in another order.
+    import stages.deblur.stacked as stacked
+    from stages.deblur import deblur
+    from tests.test_deblur import _capture
+
+    cap = _capture("translate:30,0", 96, 80)
+    made = []
+    make = stacked.make_band
+    monkeypatch.setattr(stacked, "make_band", lambda *a: made.append(1) or make(*a))
+    banded, _ = deblur(cap, "vet", motion_init="truth")
+    assert made  # (the bins were banded)
+    monkeypatch.setattr(stacked, "band_worth", lambda kernels: False)
+    made.clear()
+    plain, _ = deblur(cap, "vet", motion_init="truth")
+    assert not made
+    rel = np.abs(banded.radiance - plain.radiance) / np.abs(plain.radiance).max()
+    assert rel.max() < 1e-5

@@ -64,8 +64,6 @@ class RestRows:
     def normal(self, x: np.ndarray, wt: np.ndarray, out: np.ndarray) -> None:
         """Add ``R.T diag(wt) R x`` to ``out``: ``x``, ``out`` (N,) float32, ``wt`` the
         rows' weights, the parts' one after the other."""
-        if not self.R.nnz:
-            return
         v = self.R @ x[self.cols]
         v *= wt
         out[self.cols] += self.RT @ v
@@ -236,34 +234,33 @@ class StackedOperator:
         (:meth:`normal_column`). Where the parts are banded, each part's weights go into
         the channel's band and other rows' weights as they are made."""
         if self.banded is not None:
-            offs, rest = self.banded
             bands, rests = [], []
             for c in range(w.shape[1]):
                 rw = []
 
                 def pairs(c=c, rw=rw):
-                    for _, _, part, pw in self._part_weights(w, c):
-                        yield from zip(part.kernels, pw, strict=False)
-                        rw.append(pw[-1])
+                    for _, part, pw in self._part_weights(w, c):
+                        yield from zip(part.kernels, pw[:-1], strict=True)
+                        rw.append(pw[-1])  # (the other rows')
 
-                bands.append(make_band(pairs(), offs, self.image_shape))
-                rests.append(np.concatenate(rw) if rw else np.zeros(0, np.float32))
+                bands.append(make_band(pairs(), self.banded[0], self.image_shape))
+                rests.append(np.concatenate(rw))
             return SplitWeights(None, bands, rests)
         groups = [
             None if split is None else [[] for _ in range(w.shape[1])] for split in self.splits
         ]
         for c in range(w.shape[1]):
-            for g, _, _, pw in self._part_weights(w, c):
+            for g, _, pw in self._part_weights(w, c):
                 groups[g][c].append(pw)
         return SplitWeights(groups)
 
     def _part_weights(self, w: np.ndarray, c: int):
-        """``(group, index in it, part, its weights)`` of every split part for channel
-        ``c`` of ``w`` (:meth:`ConvolutionSplit.weights`), made one at a time."""
+        """``(group, part, its weights)`` of every split part for channel ``c`` of ``w``
+        (:meth:`ConvolutionSplit.weights`), made one at a time."""
         n = self.shape[1]
         for g, (split, (_, _, r0, _)) in enumerate(zip(self.splits, self.groups, strict=True)):
             for i, part in enumerate(split or []):
-                yield g, i, part, part.weights(w[r0 + i * n : r0 + (i + 1) * n, c])
+                yield g, part, part.weights(w[r0 + i * n : r0 + (i + 1) * n, c])
 
     def normal_column(
         self, g: int, xc: np.ndarray, w: np.ndarray, c: int, split_w: SplitWeights | None = None
