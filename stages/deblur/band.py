@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .convolution import PASS_COST, TAP_COST
+from .convolution import PASS_COST, _span, kernel_cost
 
 #: Cost of one offset's multiply-add over the image, in the units of
 #: :data:`~stages.deblur.convolution.PASS_COST` (``make bench``'s ``bench_products``
@@ -65,19 +65,10 @@ def offsets(kernels: Iterable) -> list[tuple[int, int]]:
 
 def band_worth(kernels: list) -> bool:
     """Whether the band of ``kernels`` costs less per product than their convolutions
-    (as :func:`~stages.deblur.convolution._worth` counts them)."""
-    conv = sum(
-        PASS_COST if k.tap is not None else 4 * PASS_COST + 2 * TAP_COST * len(_taps(k.small))
-        for k in kernels
-    )
+    (:func:`~stages.deblur.convolution.kernel_cost`)."""
+    conv = sum(kernel_cost(k.small) for k in kernels)
     n = len(offsets(kernels))
     return (2 * n - 1) * OFFSET_COST < conv
-
-
-def _span(d: int, n: int) -> tuple[slice, slice]:
-    """(positions ``p`` with ``p + d`` inside ``n``, those ``p + d``) along one axis."""
-    lo, hi = max(0, -d), n - max(0, d)
-    return slice(lo, hi), slice(lo + d, hi + d)
 
 
 @dataclass

@@ -51,14 +51,20 @@ COMPRESS_BELOW = 0.5
 MIN_SPLIT_SHARE = 0.5
 
 
+def kernel_cost(small: np.ndarray) -> float:
+    """A kernel's cost in a normal product, per pixel, in sparse entry visits: a one-tap
+    kernel is one fused pass, another two correlations, a product and a sum
+    (:meth:`ConvolutionSplit.normal`)."""
+    if small.size == 1:
+        return PASS_COST
+    return 4 * PASS_COST + 2 * TAP_COST * int(np.count_nonzero(small))
+
+
 def _worth(rows: int, entries: int, small: np.ndarray, n: int) -> bool:
     """Whether a kernel taking ``rows`` rows of ``entries`` entries each saves more than
-    its passes cost on an image of ``n`` pixels: the normal product visits each entry
-    twice; a one-tap kernel is one fused pass, another two correlations, a product and
-    a sum (:meth:`ConvolutionSplit.normal`)."""
-    taps = int(np.count_nonzero(small))
-    cost = PASS_COST if small.size == 1 else 4 * PASS_COST + 2 * TAP_COST * taps
-    return 2.0 * rows * entries > cost * n
+    its passes cost on an image of ``n`` pixels (the normal product visits each entry
+    twice; :func:`kernel_cost`)."""
+    return 2.0 * rows * entries > kernel_cost(small) * n
 
 
 def _span(shift: int, n: int) -> tuple[slice, slice]:
