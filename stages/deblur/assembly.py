@@ -306,9 +306,10 @@ def stencil_groups(keys: list[np.ndarray], eligible: np.ndarray):
     return rows, gid.astype(np.int64), rows[first]
 
 
-def expand_stencils(n: int, generic, stencil) -> sp.csr_matrix:
+def expand_stencils(n: int, generic, stencil, rows: np.ndarray | None = None) -> sp.csr_matrix:
     """The (N, N) CSR matrix of rows assembled one by one and rows that are a
-    representative row shifted with their pixel.
+    representative row shifted with their pixel; with ``rows`` (sorted, holding every
+    stencil row and every generic row with entries), those rows alone, (len(rows), N).
 
     ``generic``: ``(rows (R,) sorted, entries per row, columns, values)`` of the rows
     assembled one by one (each row's entries together, in row order). ``stencil``:
@@ -327,24 +328,30 @@ def expand_stencils(n: int, generic, stencil) -> sp.csr_matrix:
         [g_cols.astype(np.int64), r_cols.astype(np.int64) - np.repeat(reps, r_counts)]
     )
     src_vals = np.concatenate([g_vals, r_vals])
-    counts = np.zeros(n, np.int64)
-    start = np.zeros(n, np.int64)
-    shift = np.zeros(n, np.int64)
-    counts[g_rows] = g_counts
-    start[g_rows] = np.cumsum(g_counts) - g_counts
-    counts[s_rows] = r_counts[s_gid]
-    start[s_rows] = len(g_cols) + r_start[s_gid]
-    shift[s_rows] = s_rows
-    indptr = np.zeros(n + 1, np.int64)
+    g_start = np.cumsum(g_counts) - g_counts
+    m, g_at, s_at = n, g_rows, s_rows  # (the matrix's rows, where each row goes)
+    if rows is not None:
+        has = g_counts > 0
+        g_rows, g_counts, g_start = g_rows[has], g_counts[has], g_start[has]
+        m, g_at, s_at = rows.size, np.searchsorted(rows, g_rows), np.searchsorted(rows, s_rows)
+    counts = np.zeros(m, np.int64)
+    start = np.zeros(m, np.int64)
+    shift = np.zeros(m, np.int64)
+    counts[g_at] = g_counts
+    start[g_at] = g_start
+    counts[s_at] = r_counts[s_gid]
+    start[s_at] = len(g_cols) + r_start[s_gid]
+    shift[s_at] = s_rows
+    indptr = np.zeros(m + 1, np.int64)
     np.cumsum(counts, out=indptr[1:])
     nnz = int(indptr[-1])
     indices = mapped(max(nnz, 1), np.int32)[:nnz]
     data = mapped(max(nnz, 1), np.float32)[:nnz]
     step = 8 * CHUNK_SAMPLES  # (entries per block of rows, bounding the temporaries)
     i0 = 0
-    while i0 < n:
+    while i0 < m:
         i1 = int(np.searchsorted(indptr, indptr[i0] + step, side="right")) - 1
-        i1 = min(max(i1, i0 + 1), n)
+        i1 = min(max(i1, i0 + 1), m)
         p0, p1 = int(indptr[i0]), int(indptr[i1])
         c = counts[i0:i1]
         src = np.repeat(start[i0:i1] - (indptr[i0:i1] - p0), c)
@@ -356,5 +363,5 @@ def expand_stencils(n: int, generic, stencil) -> sp.csr_matrix:
         i0 = i1
     itype = np.int32 if nnz < 2**31 - 1 else np.int64
     return sp.csr_matrix(
-        (data, indices.astype(itype, copy=False), indptr.astype(itype)), shape=(n, n)
+        (data, indices.astype(itype, copy=False), indptr.astype(itype)), shape=(m, n)
     )

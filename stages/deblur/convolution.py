@@ -171,20 +171,24 @@ class ConvolutionSplit:
     """``M`` as ``sum_k diag(m_k) K_k + R``: shifted convolutions ``K_k`` on the rows of
     masks ``m_k`` and ``R``, the rows no kernel takes (CSR). Build it with :meth:`of`."""
 
-    def __init__(self, shape: tuple[int, int], kernels: list[_Kernel], rest: np.ndarray, M):
-        """``M``: the operator, or any (N, N) CSR matrix whose rows ``rest`` are its."""
+    def __init__(
+        self, shape: tuple[int, int], kernels: list[_Kernel], rest: np.ndarray, R: sp.csr_matrix
+    ):
+        """``R``: the operator's rows ``rest``, (len(rest), N) CSR."""
         self.shape = shape
         self.kernels = kernels
         #: The rows no kernel takes (rows with no entries left out), and their matrix,
         #: on the columns they read (``cols``; None: on all of them).
         self.rest = rest
-        R = M[rest]
-        used = np.bincount(R.indices, minlength=M.shape[1]) > 0
+        n = R.shape[1]
+        used = np.zeros(n, bool)
+        used[R.indices] = True
         self.cols = None  # (all of them: no gather and scatter through an index)
-        if np.count_nonzero(used) < COMPRESS_BELOW * used.size:
+        if np.count_nonzero(used) < COMPRESS_BELOW * n:
             self.cols = np.flatnonzero(used)
-            at = np.cumsum(used, dtype=R.indices.dtype) - 1
-            R = sp.csr_matrix((R.data, at[R.indices], R.indptr), shape=(rest.size, self.cols.size))
+            place = np.zeros(n, R.indices.dtype)  # (each column's place among them)
+            place[self.cols] = np.arange(self.cols.size, dtype=place.dtype)
+            R = sp.csr_matrix((R.data, place[R.indices], R.indptr), shape=(rest.size, self.cols.size))
         self.R, self.RT = R, R.T
 
     @classmethod
@@ -226,14 +230,15 @@ class ConvolutionSplit:
             kernels.append(_Kernel(small, shift, (label == len(kernels)).reshape(h, w)))
         if not kernels or np.count_nonzero(label >= 0) < MIN_SPLIT_SHARE * np.count_nonzero(nnz):
             return None
-        return cls(shape, kernels, np.flatnonzero(label == -1), M)
+        rest = np.flatnonzero(label == -1)
+        return cls(shape, kernels, rest, M[rest])
 
     @classmethod
     def _of_stencils(cls, M: sp.csr_matrix, st, shape: tuple[int, int]) -> ConvolutionSplit | None:
         """The split of a matrix whose rows' stencils its assembly knows
         (:class:`~stages.deblur.operator.Stencils`): the largest groups, each where it
         is worth its passes (:func:`_worth`), are the kernels."""
-        return cls.of_plan(np.diff(M.indptr), st, shape, lambda _left: M)
+        return cls.of_plan(np.diff(M.indptr), st, shape, lambda _left, rest: M[rest])
 
     @classmethod
     def of_plan(
@@ -241,13 +246,18 @@ class ConvolutionSplit:
     ) -> ConvolutionSplit | None:
         """The split of an operator from its assembly's plan alone, its matrix never made:
         ``nnz`` (N,) its entries per row, ``st`` its :class:`~stages.deblur.operator.Stencils`,
-        ``rest_rows(left)`` an (N, N) CSR matrix holding at least the generic rows and the
-        stencil rows ``st.rows[left]`` (bool) no kernel takes. None as :meth:`of`."""
+        ``rest_rows(left, rest)`` the operator's rows ``rest`` (sorted: the generic rows
+        with entries and the stencil rows ``st.rows[left]``, bool, that no kernel takes),
+        (len(rest), N) CSR. None as :meth:`of`."""
         h, w = shape
         n = h * w
         label = np.full(n, -1, np.int8)
         label[nnz == 0] = -2
-        sizes = np.bincount(st.group, minlength=len(st.reps))
+        sizes = (
+            np.array([st.group.size])
+            if len(st.reps) == 1
+            else np.bincount(st.group, minlength=len(st.reps))
+        )
         starts = np.cumsum(st.counts) - st.counts
         kernels: list[_Kernel] = []
         for g in np.argsort(-sizes, kind="stable")[:MAX_KERNELS]:
@@ -266,7 +276,8 @@ class ConvolutionSplit:
             kernels.append(_Kernel(small, shift, (label == len(kernels)).reshape(h, w)))
         if not kernels or np.count_nonzero(label >= 0) < MIN_SPLIT_SHARE * np.count_nonzero(nnz):
             return None
-        return cls(shape, kernels, np.flatnonzero(label == -1), rest_rows(label[st.rows] == -1))
+        rest = np.flatnonzero(label == -1)
+        return cls(shape, kernels, rest, rest_rows(label[st.rows] == -1, rest))
 
     def _cols(self, x: np.ndarray) -> np.ndarray:
         """The columns of ``x`` (N,) the other rows read."""

@@ -213,7 +213,10 @@ def blur_matrix(
     flat = velocity.reshape(n, 2)
     # Per-pixel numbers are kept as one number where they are alike everywhere (a uniform
     # velocity, a window given as one number), read through (N,) views of stride 0.
-    uniform = not by_layer and n > 0 and bool(np.all(flat == flat[0]))
+    # (One layer that is not along a path: motion_layers found every value the same.)
+    uniform = not by_layer and n > 0 and (
+        layers is not None or bool(np.all(flat == flat[0]))
+    )
     vel = flat[:1] if uniform else flat
     vel = vel.astype(np.float64)
     vx, vy = vel[:, 0], vel[:, 1]
@@ -261,13 +264,16 @@ def blur_matrix(
             if split_shape is not None:
                 nnz = np.zeros(n, np.int64)
                 nnz[g_rows] = g_parts[2]
-                nnz[s_rows] = r_counts[s_gid]
+                nnz[s_rows] = r_counts[0] if len(reps) == 1 else r_counts[s_gid]
                 split = ConvolutionSplit.of_plan(
                     nnz,
                     stencils,
                     split_shape,
-                    lambda left: expand_stencils(
-                        n, generic, (s_rows[left], s_gid[left], reps, r_counts, r_cols, r_vals)
+                    lambda left, rest: expand_stencils(
+                        n,
+                        generic,
+                        (s_rows[left], s_gid[left], reps, r_counts, r_cols, r_vals),
+                        rows=rest,
                     ),
                 )
                 if split is not None:
@@ -368,10 +374,15 @@ def _stencil_plan(vx, vy, windows: Sequence[Window], wins: list, h: int, w: int)
     used = [(_compact(a), _compact(d)) for a, d, _w, ns in wins if _compact(ns).any()]
     t_lo = min((float(a.min()) for a, _d in used), default=0.0)
     t_hi = max((float((a + d).max()) for a, d in used), default=0.0)
-    py, px = np.divmod(np.arange(n, dtype=np.int64), w)
-    eligible = np.ones(n, bool)
-    for v, p, size in ((vx, px, w), (vy, py, h)):
+    # On the (H, W) grid: a pixel's column and row broadcast from (1, W) and (H, 1), and
+    # a velocity given as one number as one number.
+    eligible = np.ones((h, w), bool)
+    for v, p, size in (
+        (vx, np.arange(w, dtype=np.int64).reshape(1, w), w),
+        (vy, np.arange(h, dtype=np.int64).reshape(h, 1), h),
+    ):
         v = _compact(v)
+        v = v.reshape(h, w) if v.size == n and n > 1 else v.reshape(1, 1)
         far = max(abs(t_lo), abs(t_hi))
         still = np.abs(v) * (far * POSITION_STEPS) < 0.49  # (the path keeps its pixel)
         if t_lo >= 0:  # displacement -v t for t in [0, t_hi]
@@ -379,7 +390,7 @@ def _stencil_plan(vx, vy, windows: Sequence[Window], wins: list, h: int, w: int)
         else:
             lo, hi = -np.abs(v) * far, np.abs(v) * far
         eligible &= still | ((p + lo - 1 >= 0) & (p + hi + 2 <= size - 1))
-    del px, py
+    eligible = eligible.reshape(n)
     keys, seen = [vx, vy], set()
     for win in windows:
         for val in (win.start, win.end, win.weight):
