@@ -188,7 +188,9 @@ class ConvolutionSplit:
             self.cols = np.flatnonzero(used)
             place = np.zeros(n, R.indices.dtype)  # (each column's place among them)
             place[self.cols] = np.arange(self.cols.size, dtype=place.dtype)
-            R = sp.csr_matrix((R.data, place[R.indices], R.indptr), shape=(rest.size, self.cols.size))
+            R = sp.csr_matrix(
+                (R.data, place[R.indices], R.indptr), shape=(rest.size, self.cols.size)
+            )
         self.R, self.RT = R, R.T
 
     @classmethod

@@ -214,9 +214,7 @@ def blur_matrix(
     # Per-pixel numbers are kept as one number where they are alike everywhere (a uniform
     # velocity, a window given as one number), read through (N,) views of stride 0.
     # (One layer that is not along a path: motion_layers found every value the same.)
-    uniform = not by_layer and n > 0 and (
-        layers is not None or bool(np.all(flat == flat[0]))
-    )
+    uniform = not by_layer and n > 0 and (layers is not None or bool(np.all(flat == flat[0])))
     vel = flat[:1] if uniform else flat
     vel = vel.astype(np.float64)
     vx, vy = vel[:, 0], vel[:, 1]
