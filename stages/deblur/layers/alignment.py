@@ -80,7 +80,8 @@ def median_where(a: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     value valid), from one sort of the B values of every point at once
     (:func:`sort_lanes`; with a NaN among the values, numpy's sort along axis 0).
     """
-    n = np.full(a.shape[1:], a.shape[0]) if valid is None else valid.sum(axis=0)
+    count = np.int16 if a.shape[0] < 2**15 else np.int64  # (a short sum of the booleans)
+    n = np.full(a.shape[1:], a.shape[0], count) if valid is None else valid.sum(0, dtype=count)
     if np.isnan(a).any():
         s = np.sort(a if valid is None else np.where(valid, a, np.nan), axis=0)  # NaN last
     else:  # (invalid values as +inf, last like NaN: the middle ones are the same)
@@ -187,7 +188,7 @@ def _noise_plane(grid: tuple[np.ndarray, np.ndarray], v: np.ndarray, c: float, s
     fy = np.mod(yy + vy * np.float32(c), np.float32(1.0))
     gx, gy = (1 - fx) ** 2 + fx**2, (1 - fy) ** 2 + fy**2
     if sel is not None:
-        gy, gx = gy[sel[0], 0], gx[0, sel[1]]
+        gy, gx = gy.reshape(-1)[sel[0]], gx.reshape(-1)[sel[1]]  # (1-D gathers: fast)
     return np.sqrt(gx * gy)
 
 
