@@ -35,12 +35,14 @@ on mobile cameras", ACM Trans. Graphics 35(6), 2016.
 
 from __future__ import annotations
 
+import functools
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
-from ...cluster import in_order
+from ...cluster import in_order, solve_threads
 from ...rig import RigParams
 from ..operator import Layers
 
@@ -185,16 +187,26 @@ def tile_paths(measure: np.ndarray, times: np.ndarray, rig: RigParams) -> TilePa
                 tiles.append((x0, y0, ref))
     p = np.zeros((len(tiles), n_g, 2))
     alive = np.ones(len(tiles), bool)
-    for g, comp in enumerate(groups.each(1), start=1):
-        for i, (x0, y0, ref) in enumerate(tiles):
+
+    def follow(g: int, comp: np.ndarray, part: range) -> None:
+        for i in part:
             if not alive[i]:
                 continue
+            x0, y0, ref = tiles[i]
             guess = p[i, g - 1] + (p[i, g - 1] - p[i, g - 2] if g >= 2 else 0.0)
             found, peak = _match(ref, comp, x0, y0, guess, SEARCH_PX)
             if found is None or peak < MIN_RESPONSE:
                 alive[i] = False
             else:
                 p[i, g] = found
+
+    # Each tile's path is its own: the tiles are shared out over the process's threads
+    # (OpenCV's matching releases the GIL), each writing its own tiles' entries.
+    threads = max(1, min(solve_threads(), len(tiles)))
+    parts = [range(k, len(tiles), threads) for k in range(threads)]
+    with ThreadPoolExecutor(threads) as pool:
+        for g, comp in enumerate(groups.each(1), start=1):
+            list(pool.map(functools.partial(follow, g, comp), parts))
     arr = p[alive].reshape(-1, n_g, 2)
     mids = groups.mids
     found = _cluster(arr) if n_g >= 3 else []
