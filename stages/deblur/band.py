@@ -90,20 +90,17 @@ class Band:
         return Band(offs, coeffs)
 
     def normal(self, x: np.ndarray, out: np.ndarray) -> None:
-        """Add the band's product with ``x`` to ``out``, both (H, W) float32."""
+        """Add the band's product with ``x`` to ``out``, both (H, W) float32 (each term a
+        fused multiply-add over the image: OpenCV's ``accumulateProduct``, in place on
+        the views)."""
         h, w = x.shape
-        tmp = np.empty((h, w), np.float32)
         for (dy, dx), c in zip(self.offsets, self.coeffs, strict=True):
             if dy == 0 and dx == 0:
-                np.multiply(c, x, out=tmp)
-                out += tmp
+                cv2.accumulateProduct(c, x, out)
                 continue
             (py, qy), (px, qx) = _span(dy, h), _span(dx, w)
-            t = tmp[py, px]
-            np.multiply(c[py, px], x[qy, qx], out=t)  # p reads p + d
-            out[py, px] += t
-            np.multiply(c[py, px], x[py, px], out=t)  # p + d reads p (c_{-d}[p + d])
-            out[qy, qx] += t
+            cv2.accumulateProduct(c[py, px], x[qy, qx], out[py, px])  # p reads p + d
+            cv2.accumulateProduct(c[py, px], x[py, px], out[qy, qx])  # p + d reads p
 
 
 def make_band(pairs: Iterable, offs: list[tuple[int, int]], shape: tuple[int, int]) -> Band:

@@ -318,8 +318,8 @@ class ConvolutionSplit:
         flipped kernel's correlation spreads it over the row's columns (inside the image
         for every row a kernel takes)."""
         for k, mw in zip(self.kernels, weights, strict=False):
-            if k.tap is not None:  # a whole-pixel shift: one fused pass
-                out += x * mw
+            if k.tap is not None:  # a whole-pixel shift: one fused multiply-add
+                cv2.accumulateProduct(x, mw, out)
                 continue
             f = k.correlate(x)
             f *= mw
