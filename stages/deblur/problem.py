@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import scipy.sparse as sp
 
@@ -458,15 +459,15 @@ def pcg(
         r *= keep
     z = minv * r
     p = z.copy()
-    tmp = np.empty_like(p)  # (the updates' scaled vector, made once)
     rz = _row_dots(r, z)
     stop = tol * tol * rz
     for k in range(iters):
         hp = apply_h(p)
         php = _row_dots(p, hp)
-        alpha = np.where(php > 0, rz / np.where(php > 0, php, 1), 0.0)[:, None]
-        x += np.multiply(alpha, p, out=tmp)
-        r -= np.multiply(alpha, hp, out=tmp)  # (fixed unknowns' entries unread: z is 0 there)
+        alpha = np.where(php > 0, rz / np.where(php > 0, php, 1), 0.0)
+        for c in range(x.shape[0]):  # (fused multiply-adds, in place, row by row)
+            cv2.scaleAdd(p[c], float(alpha[c]), x[c], x[c])
+            cv2.scaleAdd(hp[c], -float(alpha[c]), r[c], r[c])  # (fixed ones unread: z is 0)
         del hp
         if callback is not None:
             callback(k, x)
@@ -474,8 +475,8 @@ def pcg(
         rz_new = _row_dots(r, z)
         if np.all(rz_new <= stop):
             break
-        beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)[:, None]
+        beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)
         rz = rz_new
-        p *= beta  # p = z + beta p, in place
-        p += z
+        for c in range(p.shape[0]):  # p = z + beta p
+            cv2.scaleAdd(p[c], float(beta[c]), z[c], p[c])
     return x
