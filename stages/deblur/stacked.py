@@ -189,11 +189,12 @@ class StackedOperator:
         out = np.empty((self.shape[0], x.shape[1]), np.float32)
         if self.parts is not None:
             n = self.rows
+            xs = [
+                np.ascontiguousarray(x32[:, c]).reshape(self.image_shape) for c in range(x.shape[1])
+            ]
             for i, part in enumerate(self.parts):
-                for c in range(x.shape[1]):
-                    out[i * n : (i + 1) * n, c] = part.apply(
-                        np.ascontiguousarray(x32[:, c]).reshape(self.image_shape)
-                    )
+                for c, xc in enumerate(xs):
+                    out[i * n : (i + 1) * n, c] = part.apply(xc)
             return out
         for M, _, r0, r1 in self.groups:
             out[r0:r1] = product(M, x32)
@@ -220,13 +221,14 @@ class StackedOperator:
     def _adjoint(self, r: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """``stack.T @ (w * r)`` through the parts' splits, a part and channel at a time."""
         n = self.rows
-        out = np.zeros((n, r.shape[1]))
+        out = np.zeros((r.shape[1], n))  # (a channel contiguous; returned as (N, C))
         for i, part in enumerate(self.parts):
+            y = r[i * n : (i + 1) * n]
+            y = y if w is None else w[i * n : (i + 1) * n] * y
+            y = np.ascontiguousarray(np.asarray(y, np.float32).T)  # (C, N)
             for c in range(r.shape[1]):
-                y = r[i * n : (i + 1) * n, c]
-                y = y if w is None else w[i * n : (i + 1) * n, c] * y
-                out[:, c] += part.adjoint(np.asarray(y, np.float32)).reshape(-1)
-        return out
+                out[c] += part.adjoint(y[c]).reshape(-1)
+        return out.T
 
     def split_weights(self, w: np.ndarray) -> SplitWeights:
         """The row weights ``w`` (B N, C) as the split groups take them
