@@ -27,7 +27,7 @@ import numpy as np
 
 from .formats.capture import MOTION_BINS, Capture
 from .formats.layered import Layered, write_layered
-from .physics import bin_may_clip
+from .physics import bin_may_clip, channel_mean
 
 FLOW_METHODS = ("farneback", "dis")
 
@@ -172,8 +172,8 @@ def estimate_velocity(
         from .errors import InputError
 
         raise InputError("capture has fewer than two measuring bins; motion cannot be estimated")
-    lum = rate.mean(axis=3)
-    noise = sigma.mean(axis=3) / np.sqrt(rate.shape[3])
+    lum = channel_mean(rate)
+    noise = channel_mean(sigma) / np.sqrt(rate.shape[3])
     # Saturated bins carry a lower bound: take the rate of the VET image's first bin there.
     floor = np.median(noise, axis=0)
     lv = np.log(np.maximum(lum, 0) + floor).astype(np.float32)

@@ -27,7 +27,7 @@ import numpy as np
 
 from .formats.capture import Capture, provenance_entry
 from .formats.hdr import HDRImage
-from .physics import bin_may_clip
+from .physics import any_channel, bin_may_clip
 
 #: A pixel whose signal is below this many electrons carries no information.
 NOISE_FLOOR_E = 1.0
@@ -162,7 +162,7 @@ def hdr_static(
     mask = np.zeros(cap.shape, np.uint8)
     vet_sat = cap.I >= np.float32(rig.saturation_dn)
     if vet_sat.any():
-        sat_px = vet_sat.any(axis=2)
+        sat_px = any_channel(vet_sat)
         rec, rec_ok, rec_sd = _rate_from_measure(cap)
         if rec is not None:
             use = sat_px & rec_ok
@@ -191,7 +191,7 @@ def hdr_static(
         else:
             mask[sat_px] = 2
     floor_rate = np.float32(NOISE_FLOOR_E) / expo
-    low = (signal_e < NOISE_FLOOR_E).any(axis=2) & (mask == 0)
+    low = any_channel(signal_e < NOISE_FLOOR_E) & (mask == 0)
     mask[low] = 3
     rate = np.maximum(rate, floor_rate)
 

@@ -305,3 +305,16 @@ def test_bin_may_clip_flags_the_bins_whose_subframes_clip():
     assert clipped > 0.8 and flagged == 1.0
     clipped, flagged = bins(3967.0)
     assert 0.005 < clipped < 0.05 and 0.3 < flagged < 0.7
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+def test_channel_mean_and_any_are_numpys_to_the_bit(rng, dtype, channels):
+    from stages.physics import any_channel, channel_mean
+
+    frame = (rng.random((3, 17, 23, channels)) * 1e4).astype(dtype)
+    got = channel_mean(frame)
+    assert got.dtype == frame.mean(axis=-1).dtype
+    np.testing.assert_array_equal(got, frame.mean(axis=-1))
+    mask = frame > 0.8e4
+    np.testing.assert_array_equal(any_channel(mask), mask.any(axis=-1))

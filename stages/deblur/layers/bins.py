@@ -6,6 +6,7 @@ import numpy as np
 
 from ...cluster import in_order
 from ...formats.capture import Capture
+from ...physics import channel_mean
 
 
 def rate_frames(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -68,8 +69,8 @@ def _bin_rate(cap: Capture, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]
             meta=meta,
         )
         rate, sigma, valid[:, r0:r1] = measure_rates(strip)
-        lum[:, r0:r1] = rate.mean(axis=3)
-        noise[:, r0:r1] = sigma.mean(axis=3) / np.float32(np.sqrt(n_ch))
+        lum[:, r0:r1] = channel_mean(rate)
+        noise[:, r0:r1] = channel_mean(sigma) / np.float32(np.sqrt(n_ch))
     return lum, noise, valid
 
 
