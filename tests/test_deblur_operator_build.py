@@ -320,3 +320,32 @@ def test_trajectory_sum_is_the_weighted_bilinear_gather_of_every_channel():
             )
     assert got.shape == (h, w, k) and got.dtype == np.float32
     assert np.abs(got - want).max() < 1e-4
+
+
+def test_stencil_rows_expanded_for_some_rows_are_those_rows_of_the_matrix():
+    # expand_stencils(rows=...) makes the rows asked for alone: the same entries as
+    # those rows of the whole matrix (generic rows without entries may be left out).
+    from stages.deblur.assembly import expand_stencils
+
+    n = 12
+    generic = (
+        np.array([0, 3, 7]),  # rows (row 3 has no entries)
+        np.array([2, 0, 1]),
+        np.array([1, 5, 7], np.int32),
+        np.array([0.5, 0.25, 1.0], np.float32),
+    )
+    stencil = (
+        np.array([4, 5, 9, 10]),  # rows, in two groups
+        np.array([0, 1, 0, 1]),
+        np.array([4, 5]),  # each group's representative
+        np.array([2, 1]),
+        np.array([3, 5, 6], np.int32),  # the representatives' columns: 4 - 1, 4 + 1, 5 + 1
+        np.array([0.125, 0.375, 2.0], np.float32),
+    )
+    full = expand_stencils(n, generic, stencil)
+    rows = np.array([0, 4, 5, 7, 9, 10])
+    part = expand_stencils(n, generic, stencil, rows=rows)
+    assert part.shape == (rows.size, n)
+    assert (part != full[rows]).nnz == 0
+    np.testing.assert_array_equal(part.indptr, full[rows].indptr)
+    np.testing.assert_array_equal(full[9].indices, [8, 10])  # (row 9 reads 4's, moved by 5)

@@ -191,7 +191,8 @@ def blur_matrix(
         motion within one); default none.
     layers : Layers or None, optional
         ``motion_layers(velocity)`` when the caller has it (several operators of one
-        motion); by default it is read here.
+        motion), or the motion's layers along their trajectories; by default it is read
+        here. One layer without a trajectory says the velocity is the same everywhere.
 
     split_shape : (H, W), optional
         The image's shape, to return the operator as shifted convolutions and the rows
