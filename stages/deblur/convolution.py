@@ -302,7 +302,7 @@ class ConvolutionSplit:
         for k in self.kernels:
             (ry, rx), (cy, cx) = k.slices(h, w)
             mw = np.zeros((h, w), np.float32)
-            mw[cy, cx] = np.where(k.mask[ry, rx], img[ry, rx], np.float32(0))
+            np.multiply(img[ry, rx], k.mask[ry, rx], out=mw[cy, cx])  # (0 off the mask)
             if k.tap is not None:
                 mw *= np.float32(k.tap * k.tap)
             out.append(mw)
@@ -339,7 +339,7 @@ class ConvolutionSplit:
         for k in self.kernels:
             (ry, rx), (cy, cx) = k.slices(h, w)
             mw = np.zeros((h, w), np.float32)
-            mw[cy, cx] = np.where(k.mask[ry, rx], img[ry, rx], np.float32(0))
+            np.multiply(img[ry, rx], k.mask[ry, rx], out=mw[cy, cx])  # (0 off the mask)
             sq = _Kernel(np.square(k.small), k.shift, k.mask)
             out += mw * np.float32(k.tap * k.tap) if k.tap is not None else sq.spread(mw)
         diag = out.reshape(-1).astype(np.float64)
@@ -374,7 +374,9 @@ class ConvolutionSplit:
         for k in self.kernels:
             (ry, rx), (cy, cx) = k.slices(h, w)
             f = k.correlate(x)
-            y[ry, rx] += np.where(k.mask[ry, rx], f[cy, cx], np.float32(0))
+            fk = f[cy, cx]
+            fk *= k.mask[ry, rx]  # (0 off the mask)
+            y[ry, rx] += fk
         y = y.reshape(-1)
         if self.rest.size:
             y[self.rest] = self.R @ self._cols(x.reshape(-1))
@@ -388,7 +390,7 @@ class ConvolutionSplit:
         for k in self.kernels:
             (ry, rx), (cy, cx) = k.slices(h, w)
             at_shifted = np.zeros((h, w), np.float32)
-            at_shifted[cy, cx] = np.where(k.mask[ry, rx], img[ry, rx], np.float32(0))
+            np.multiply(img[ry, rx], k.mask[ry, rx], out=at_shifted[cy, cx])
             out += k.spread(at_shifted)
         if self.rest.size:
             self._add_cols(out.reshape(-1), self.RT @ np.asarray(y, np.float32)[self.rest])
