@@ -591,3 +591,15 @@ def test_a_faint_quarter_frame_object_over_texture_is_a_layer(shared_hdr):
     labelled = np.any(est.velocity != 0, axis=2)
     assert labelled[truth].mean() > 0.9 and labelled[~truth].mean() < 0.03
     assert est.check.fits
+
+
+def test_median0_is_numpys_median_over_the_first_axis():
+    from stages.deblur.layers.alignment import median0
+
+    rng = np.random.default_rng(7)
+    for b in (1, 2, 5, 16, 25):
+        a = rng.random((b, 9, 11)).astype(np.float32)
+        a[:, 0, 0] = 0.5  # (ties)
+        np.testing.assert_array_equal(median0(a), np.median(a, axis=0))
+    a[3, 2, 2] = np.nan  # (numpy's median propagates it)
+    np.testing.assert_array_equal(median0(a), np.median(a, axis=0))

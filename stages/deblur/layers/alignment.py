@@ -91,6 +91,15 @@ def median_where(a: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     return np.where(n > 0, (lo + hi) / a.dtype.type(2), 0).astype(a.dtype, copy=False)
 
 
+def median0(a: np.ndarray) -> np.ndarray:
+    """``np.median(a, axis=0)`` of floats (B, ...), the same numbers, from one sort of
+    every point's B values at once (:func:`median_where`; numpy's own where a value is
+    NaN, which numpy's median propagates)."""
+    if np.isnan(a).any():
+        return np.median(a, axis=0)
+    return median_where(a)
+
+
 def _merge_pairs(n: int) -> list[tuple[int, int]]:
     """Compare-exchange pairs ``(i, j)``, ``i < j < n``, of Batcher's odd-even merge sort
     (on the next power of two; pairs that reach past ``n`` are left out: the missing

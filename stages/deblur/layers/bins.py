@@ -7,6 +7,7 @@ import numpy as np
 from ...cluster import in_order
 from ...formats.capture import Capture
 from ...physics import channel_mean
+from .alignment import median0
 
 
 def rate_frames(cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -76,7 +77,7 @@ def _bin_rate(cap: Capture, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 def log_frames(lum: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Log rates and their noise in log units (first order)."""
-    floor = np.median(noise, axis=0)
+    floor = median0(noise)
     pos = np.maximum(lum, 0) + floor
     lv = np.log(pos).astype(np.float32)
     # Floored so that very bright pixels do not get infinite weight (flow and

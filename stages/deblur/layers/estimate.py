@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...formats.capture import Capture
+from .alignment import median0
 from .bins import binned_work_frames, rate_frame_centres, rate_frames, work_frames
 from .labels import SAME_LAYER_PX_S, assign_labels, kept_layers, merge_alike, refine_boundaries
 from .model_check import ModelCheck, layered_model_check
@@ -66,7 +67,7 @@ def estimate_layers(cap: Capture) -> LayerEstimate:
         else:
             lvt, slvt, _valid, _scale, centres_t = binned_work_frames(cap, TRACK_BINS, MAX_WORK_PX)
     ok = valid.all(axis=0)
-    conf_raw = np.median(wts, axis=0) * ok
+    conf_raw = median0(wts) * ok
     conf = conf * ok
     modes = velocity_modes(votes, wts * ok[None])
     del votes, wts  # (their modes are all the rest reads: not held through the search)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...cluster import in_order
-from .alignment import layer_cost
+from .alignment import layer_cost, median0
 from .bins import equalise_all
 
 #: A mode must gather this share of the confident pixels to become a layer.
@@ -86,7 +86,7 @@ def dense_long_baseline(lv: np.ndarray, slv: np.ndarray, centres: np.ndarray, me
     frames = equalise_all(lv)
     nb, h, w = lv.shape
     pairs = [(0, b) for b in range(1, nb)] + [(b, nb - 1) for b in range(1, nb - 1)]
-    snr = 1.0 / np.median(slv, axis=0)
+    snr = 1.0 / median0(slv)
     base = lv.mean(axis=0).astype(np.float32)
     gx = cv2.Sobel(base, cv2.CV_32F, 1, 0)
     gy = cv2.Sobel(base, cv2.CV_32F, 0, 1)
@@ -109,7 +109,7 @@ def dense_long_baseline(lv: np.ndarray, slv: np.ndarray, centres: np.ndarray, me
     first = votes[: nb - 1]
     dts = (centres[1:] - centres[0]).reshape(-1, 1, 1, 1)
     vel = (first * dts**2).sum(axis=0) / float(np.sum(dts**2))
-    spread = np.sqrt(np.median(np.sum((votes - vel[None]) ** 2, axis=3), axis=0))
+    spread = np.sqrt(median0(np.sum((votes - vel[None]) ** 2, axis=3)))
     conf = conf / (1.0 + spread / 2.0)
     return votes, wts, vel.astype(np.float32), conf.astype(np.float32)
 
