@@ -283,9 +283,12 @@ def _run(
 
         info["executor"] = "in-process"
         # Tiles side by side on the process's threads, each solved on one: tiles share
-        # the cores better than one solve's products do. At most TILES_AT_ONCE in flight
-        # (memory: one tile's operators and observations each). OpenCV on one thread
-        # however many run at once, as on a Dask worker: the same image either way.
+        # the cores better than one solve's products do. At most TILES_AT_ONCE solving
+        # (memory: one tile's operators and observations each); the next ones queued
+        # behind them (a queued tile holds nothing until it starts: its crop is made
+        # then), so a thread whose tile finishes first starts another while the one
+        # handed out next is still solving. OpenCV on one thread however many run at
+        # once, as on a Dask worker: the same image either way.
         with opencv_single_threaded():
             side = min(TILES_AT_ONCE, solve_threads()) > 1
 
@@ -295,7 +298,7 @@ def _run(
                     return deblur_tile(solve, cap, vel, motion_model, options, paths)
 
             for i, result in enumerate(
-                in_order(one, n, most=TILES_AT_ONCE) if side else map(one, range(n))
+                in_order(one, n, ahead=2, most=TILES_AT_ONCE) if side else map(one, range(n))
             ):
                 yield i, result
                 if progress:
