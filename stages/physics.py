@@ -145,18 +145,25 @@ def bin_may_clip(per_sub_dn: np.ndarray, rig: RigParams) -> np.ndarray:
     return any_channel(per_sub_dn + np.float32(3.0) * shot_dn >= np.float32(rig.saturation_dn))
 
 
-def channel_mean(frame: np.ndarray) -> np.ndarray:
-    """Mean over the last (channel) axis of a float array (..., C): the numbers of
-    ``frame.mean(axis=-1)`` (the channels summed in order in the array's precision, then
-    divided by C), from whole channel planes, where numpy's reduction over a short
-    contiguous axis is an order of magnitude slower (``bench_foundation`` times both)."""
+def channel_mean(
+    frame: np.ndarray, dtype: np.typing.DTypeLike = None, out: np.ndarray | None = None
+) -> np.ndarray:
+    """Mean over the last (channel) axis of (..., C), from whole channel planes (numpy's
+    reduction over a short contiguous axis is much slower; ``bench_foundation`` times
+    both): the channels summed in order in ``dtype`` (by default the array's, which must
+    then be floating), then divided by C, into ``out`` if given. For a float array, the
+    numbers of ``frame.mean(axis=-1)``."""
+    dt = np.dtype(frame.dtype if dtype is None else dtype)
     c = frame.shape[-1]
     if c == 1:
-        return frame[..., 0].copy()
-    out = np.add(frame[..., 0], frame[..., 1])
+        if out is None:
+            return frame[..., 0].astype(dt)
+        np.copyto(out, frame[..., 0], casting="unsafe")
+        return out
+    out = np.add(frame[..., 0], frame[..., 1], out=out, dtype=dt)
     for k in range(2, c):
-        out += frame[..., k]
-    out /= out.dtype.type(c)
+        np.add(out, frame[..., k], out=out, dtype=dt)
+    out /= dt.type(c)
     return out
 
 

@@ -241,3 +241,30 @@ def test_tiles_finishing_in_any_order_blend_to_the_same_image(
     reversed_, _ = deblur(cap, motion_init="truth", tile=64)
     assert reversed_.meta["tiles"] == in_order.meta["tiles"]
     np.testing.assert_array_equal(reversed_.radiance, in_order.radiance)
+
+
+def test_a_thread_whose_tile_finishes_first_starts_the_next(monkeypatch):
+    # In process, two tiles solve side by side. While the tile handed out first is still
+    # solving, a thread that finished the other starts the tile after them (queued
+    # behind them), not idle until the first is done. Tile 0 waits for tile 2 to start.
+    import threading
+
+    import stages.cluster as cluster_mod
+    import stages.deblur.tiles as tiles_mod
+
+    monkeypatch.setattr(cluster_mod, "solve_threads", lambda: 2)
+    started = [threading.Event() for _ in range(4)]
+    seen: dict[str, bool] = {}
+
+    def fake_tile(solve, cap, vel, motion_model, options, paths):
+        started[cap].set()
+        if cap == 0:
+            seen["third started while the first solved"] = started[2].wait(timeout=10)
+        return np.full((1, 1, 1), cap, np.float32), "fused"
+
+    monkeypatch.setattr(tiles_mod, "deblur_tile", fake_tile)
+    jobs = [lambda i=i: (i, None, None) for i in range(4)]
+    info: dict = {}
+    got = list(tiles_mod._run(None, jobs, 4, "given", None, 1, None, None, info))
+    assert [i for i, _ in got] == [0, 1, 2, 3]  # (handed out in order)
+    assert seen == {"third started while the first solved": True}

@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...cluster import in_order, solve_threads
+from ...physics import channel_mean
 from ...rig import RigParams
 from ..operator import Layers
 
@@ -101,13 +102,7 @@ class Groups:
             if n_ch == 1:  # (the mean of one channel is itself)
                 acc += measure[k, ..., 0]
                 continue
-            # The channels' mean in float32, as ndarray.mean sums them (in order) and
-            # divides, without its strided reduction over the last axis.
-            np.add(measure[k, ..., 0], measure[k, ..., 1], out=mean, dtype=np.float32)
-            for c in range(2, n_ch):
-                np.add(mean, measure[k, ..., c], out=mean, dtype=np.float32)
-            mean /= np.float32(n_ch)
-            acc += mean
+            acc += channel_mean(measure[k], np.float32, out=mean)  # (in float32)
         np.maximum(acc, 0.0, out=acc)
         acc += np.float32(self.floor)
         return np.log(acc, out=acc)
