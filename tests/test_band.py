@@ -165,3 +165,27 @@ def test_a_deblur_through_the_band_is_the_one_through_the_convolutions(monkeypat
     assert not made
     rel = np.abs(banded.radiance - plain.radiance) / np.abs(plain.radiance).max()
     assert rel.max() < 1e-5
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 1), (1, 2), (2, 2), (2, 3), (3, 2), (4, 5)])
+def test_a_band_on_an_image_narrower_than_its_offsets_is_the_dense_product(shape):
+    # Offsets as long as the image or longer read nothing; the others as on a large one.
+    from stages.deblur.band import Band
+
+    h, w = shape
+    rng = np.random.default_rng(3)
+    offs = [(0, 0), (0, 1), (0, 2), (0, 3), (1, -1), (1, 0), (2, 1), (3, 0)]
+    coeffs = rng.random((len(offs), h, w)).astype(np.float32)
+    x = rng.random((h, w)).astype(np.float32)
+    want = np.zeros((h, w))
+    for (dy, dx), c in zip(offs, coeffs, strict=True):
+        for py in range(h):
+            for px in range(w):
+                qy, qx = py + dy, px + dx
+                if 0 <= qy < h and 0 <= qx < w:
+                    want[py, px] += c[py, px] * x[qy, qx]
+                    if (dy, dx) != (0, 0):
+                        want[qy, qx] += c[py, px] * x[py, px]
+    out = np.zeros((h, w), np.float32)
+    Band(offs, coeffs).normal(x, out)
+    np.testing.assert_allclose(out, want, rtol=1e-5)

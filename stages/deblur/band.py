@@ -99,6 +99,8 @@ class Band:
                 cv2.accumulateProduct(c, x, out)
                 continue
             (py, qy), (px, qx) = _span(dy, h), _span(dx, w)
+            if py.stop == py.start or px.stop == px.start:
+                continue  # (the offset is the whole image or more: no pixel reads it)
             cv2.accumulateProduct(c[py, px], x[qy, qx], out[py, px])  # p reads p + d
             cv2.accumulateProduct(c[py, px], x[py, px], out[qy, qx])  # p + d reads p
 

@@ -68,8 +68,10 @@ def _worth(rows: int, entries: int, small: np.ndarray, n: int) -> bool:
 
 
 def _span(shift: int, n: int) -> tuple[slice, slice]:
-    """(rows whose ``i + shift`` is inside ``n``, those positions) along one axis."""
-    lo, hi = max(0, -shift), n - max(0, shift)
+    """(rows whose ``i + shift`` is inside ``n``, those positions) along one axis; empty
+    where the shift is the whole axis or more."""
+    lo = min(n, max(0, -shift))
+    hi = max(lo, n - max(0, shift))
     return slice(lo, hi), slice(lo + shift, hi + shift)
 
 
