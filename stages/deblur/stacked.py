@@ -219,7 +219,8 @@ class StackedOperator:
         return out
 
     def _adjoint(self, r: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
-        """``stack.T @ (w * r)`` through the parts' splits, a part and channel at a time."""
+        """``stack.T @ (w * r)`` through the parts' splits, a part and channel at a time:
+        (N, C) float64, the transpose of a (C, N) array (a channel contiguous)."""
         n = self.rows
         out = np.zeros((r.shape[1], n))  # (a channel contiguous; returned as (N, C))
         for i, part in enumerate(self.parts):
