@@ -403,6 +403,44 @@ def test_the_layer_cost_at_points_is_the_maps_there(monkeypatch, row):
         np.testing.assert_array_equal(at, whole[ys, xs])
 
 
+def test_the_velocity_search_on_a_draw_of_points_finds_the_motion(monkeypatch):
+    # A layer with more points than the search reads: a fixed draw of them finds the
+    # true velocity (to the search's finest step) as all of them do, the same every run.
+    import cv2
+
+    from stages.deblur.layers import velocities
+    from stages.deblur.layers.velocities import refine_velocity
+
+    rng = np.random.default_rng(5)
+    h, w = 72, 96
+    scene = cv2.GaussianBlur(rng.normal(0.0, 1.0, (h + 40, w + 40)).astype(np.float32), (0, 0), 1.5)
+    centres = np.linspace(0.05, 0.95, 8)
+    truth = np.array([7.3, -4.1])  # px/s
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    lv = np.stack(  # bin b shows at x the scene point x - v c_b
+        [
+            cv2.remap(
+                scene,
+                xx + 20 - np.float32(truth[0] * c),
+                yy + 20 - np.float32(truth[1] * c),
+                cv2.INTER_CUBIC,
+            )
+            for c in centres
+        ]
+    )
+    lv += rng.normal(0.0, 0.01, lv.shape).astype(np.float32)
+    slv = np.full_like(lv, 0.01)
+    weight = np.zeros((h, w))
+    weight[16:-16, 16:-16] = 1.0
+    start = truth + np.array([0.75, -0.625])  # (the truth on the search's grid)
+    every = refine_velocity(lv, slv, start, centres, weight)
+    monkeypatch.setattr(velocities, "REFINE_POINTS", 300)  # of the 2560 weighted points
+    drawn = refine_velocity(lv, slv, start, centres, weight)
+    np.testing.assert_array_equal(refine_velocity(lv, slv, start, centres, weight), drawn)
+    for v in (every, drawn):
+        assert np.abs(v - truth).max() <= 0.0625
+
+
 def test_deblur_of_a_rotation_leaves_the_layers_and_beats_hdr_static():
     # The layered start of a rotation is the one translation that fits best; deblurring
     # along it was worse than not deblurring (dark RMS over the pixels vet evaluate

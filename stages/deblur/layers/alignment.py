@@ -133,15 +133,21 @@ def sort_lanes(a: np.ndarray) -> np.ndarray:
     return np.stack(planes) if planes else np.array(a, copy=True)
 
 
-def inside(v: np.ndarray, centres: np.ndarray, h: int, w: int) -> np.ndarray:
-    """Per bin, the scene points whose compensated position lies in the image, (B, H, W)."""
+def inside(v: np.ndarray, centres: np.ndarray, h: int, w: int, sel=None) -> np.ndarray:
+    """Per bin, the scene points whose compensated position lies in the image, (B, H, W);
+    ``sel``: at those indices alone (one velocity), (B, *sel[0].shape), the same values
+    (a point's row and column are each tested once for all the points)."""
     yy, xx = _grid(v, h, w)
     vx, vy = components(v)
-    ok = np.empty((len(centres), h, w), bool)
+    ok = np.empty((len(centres), *((h, w) if sel is None else sel[0].shape)), bool)
     for b, c in enumerate(centres):
         x = xx + vx * np.float32(c)
         y = yy + vy * np.float32(c)
-        ok[b] = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+        okx, oky = (x >= 0) & (x <= w - 1), (y >= 0) & (y <= h - 1)
+        if sel is None:
+            np.logical_and(oky, okx, out=ok[b])
+        else:  # (1-D gathers of the row's and the column's tests)
+            np.logical_and(oky.reshape(-1)[sel[0]], okx.reshape(-1)[sel[1]], out=ok[b])
     return ok
 
 
@@ -230,9 +236,7 @@ def layer_cost(lv, slv, v, centres, trunc=9.0, visible=None, points=None):
         sel = point_grid(*points)
         yy, xx = at = tuple(a.astype(np.float32) for a in sel)
     comp = compensated(lv, v, centres, at=at)
-    ins = inside(v, centres, h, w)
-    if sel is not None:
-        ins = ins[:, sel[0], sel[1]]
+    ins = inside(v, centres, h, w, sel)
     if visible is not None:
         ins &= visible
     med = median_where(comp, None if ins.all() else ins)
