@@ -9,6 +9,8 @@ its brightest pixel once that sum reaches the threshold, and the closure takes e
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.special import ndtr
 
@@ -141,8 +143,48 @@ def bin_may_clip(per_sub_dn: np.ndarray, rig: RigParams) -> np.ndarray:
     for everyone who reads the bins (hdr-static, flow, the deblur misfit).
     """
     g = np.float32(rig.gain_dn_per_e)
+    sat = np.float32(rig.saturation_dn)
+    per_sub_dn = np.asarray(per_sub_dn)
+    least = _least_may_clip(per_sub_dn.dtype, g, sat)
+    if least is not None:  # (one comparison: the same booleans)
+        return any_channel(per_sub_dn >= least)
+    return any_channel(_clip_tail(per_sub_dn, g) >= sat)
+
+
+def _clip_tail(per_sub_dn: np.ndarray, g: np.float32) -> np.ndarray:
+    """The 3-sigma shot tail of :func:`bin_may_clip`, in ``per_sub_dn``'s precision."""
     shot_dn = np.sqrt(np.maximum(per_sub_dn, 0) * g)  # g * sqrt(electrons)
-    return any_channel(per_sub_dn + np.float32(3.0) * shot_dn >= np.float32(rig.saturation_dn))
+    return per_sub_dn + np.float32(3.0) * shot_dn
+
+
+@functools.lru_cache(maxsize=64)
+def _least_may_clip(dtype: np.dtype, g: np.float32, sat: np.float32):
+    """The least value ``x`` of the floating ``dtype`` whose :func:`_clip_tail` reaches
+    ``sat``, or None where no such threshold stands for the test (a non-float dtype, a
+    gain or saturation that is not positive and finite).
+
+    The tail is a non-decreasing function of ``x`` as computed (each of its operations
+    rounds monotonically), negative below 0 and at least ``x`` above it, so the test
+    holds exactly from that value up: it is found by bisection over the dtype's positive
+    values (in their bit patterns' order), from the same operations on 0-d arrays.
+    """
+    if dtype.kind != "f" or dtype.itemsize not in (4, 8):
+        return None
+    if not (np.isfinite(g) and g > 0 and np.isfinite(sat) and sat > 0):
+        return None
+    bits = np.dtype(f"u{dtype.itemsize}")
+
+    def reaches(k: int) -> bool:
+        x = np.array(k, bits).view(dtype)
+        return bool(_clip_tail(x, g) >= sat)
+
+    lo, hi = 0, int(np.array(sat, dtype).view(bits))  # (0 falls short; sat itself reaches)
+    if reaches(lo) or not reaches(hi):
+        return None
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if reaches(mid) else (mid, hi)
+    return np.array(hi, bits).view(dtype)[()]
 
 
 def channel_mean(

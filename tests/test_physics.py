@@ -308,6 +308,35 @@ def test_bin_may_clip_flags_the_bins_whose_subframes_clip():
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("full_well", [None, 7301.0, 1e12])
+def test_bin_may_clip_is_its_formula_to_the_bit(dtype, full_well):
+    # The test runs as one comparison with the least value whose 3-sigma tail reaches a
+    # clipped code: the same booleans as the formula, at every value of the dtype near
+    # that threshold, at random values, and at the special ones.
+    from stages.physics import _clip_tail, _least_may_clip, bin_may_clip
+
+    rig = RigParams() if full_well is None else RigParams(full_well_e=full_well)
+    g, sat = np.float32(rig.gain_dn_per_e), np.float32(rig.saturation_dn)
+    least = _least_may_clip(np.dtype(dtype), g, sat)
+    assert least is not None
+    bits = np.dtype(f"u{np.dtype(dtype).itemsize}")
+    k = int(np.array(least, dtype).view(bits))
+    rng = np.random.default_rng(7)
+    values = np.concatenate(
+        [
+            np.arange(k - 3000, k + 3000).astype(bits).view(dtype),
+            rng.uniform(-50.0, 1.2 * float(sat), 100_000).astype(dtype),
+            np.array([np.nan, np.inf, -np.inf, 0.0, -0.0, sat, -sat, 1.0], dtype),
+        ]
+    ).reshape(-1, 3)
+    expected = (_clip_tail(values, g) >= sat).any(axis=-1)
+    got = bin_may_clip(values, rig)
+    assert got.dtype == bool and got.shape == expected.shape
+    np.testing.assert_array_equal(got, expected)
+    assert expected.any() and not expected.all()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("channels", [1, 2, 3, 4])
 def test_channel_mean_and_any_are_numpys_to_the_bit(rng, dtype, channels):
     from stages.physics import any_channel, channel_mean
