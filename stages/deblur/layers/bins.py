@@ -70,8 +70,10 @@ def _bin_rate(cap: Capture, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]
             meta=meta,
         )
         rate, sigma, valid[:, r0:r1] = measure_rates(strip)
-        lum[:, r0:r1] = channel_mean(rate)
-        noise[:, r0:r1] = channel_mean(sigma) / np.float32(np.sqrt(n_ch))
+        channel_mean(rate, out=lum[:, r0:r1])
+        channel_mean(sigma, out=noise[:, r0:r1])
+        if n_ch > 1:  # (x / 1 is x)
+            noise[:, r0:r1] /= np.float32(np.sqrt(n_ch))
     return lum, noise, valid
 
 
