@@ -76,6 +76,8 @@ def test_resolve_tile():
     assert resolve_tile("auto", (1024, 1024)) is None
     assert resolve_tile("auto", (1024, 1280)) == 512
     assert resolve_tile("auto", (3072, 4096)) == 512
+    assert resolve_tile("auto", (1024, 1280), channels=1) == 640  # (a mono tile: larger)
+    assert resolve_tile("auto", (1024, 1024), channels=1) is None
     assert resolve_tile("none", (3072, 4096)) is None
     assert resolve_tile(256, (100, 100)) == 256
     with pytest.raises(InputError):

@@ -93,7 +93,8 @@ Example:
     metavar="N|auto|none",
     callback=lambda ctx, param, value: _tile_value(value),
     help="Solve in overlapping N x N pixel tiles, the motion estimated once for the frame: "
-    "memory bounded by a tile. auto: tiles of 512 on frames over 1024 pixels on a side; "
+    "memory bounded by a tile. auto: tiles of 512 (640 for one channel) on frames over 1024 "
+    "pixels on a side; "
     "none: one solve. --method vet only.",
 )
 @click.option(

@@ -149,11 +149,12 @@ def _max_speed(velocity: np.ndarray, layers: Layers | None) -> float:
     return float(np.sqrt(np.max(velocity[..., 0] ** 2 + velocity[..., 1] ** 2)))
 
 
-def _tiled(tile: int | str | None, shape: tuple[int, int]) -> bool:
-    """Whether ``deblur(..., tile=tile)`` solves a frame of ``shape`` in tiles."""
+def _tiled(tile: int | str | None, shape: tuple[int, int], channels: int = 3) -> bool:
+    """Whether ``deblur(..., tile=tile)`` solves a frame of ``shape`` (of ``channels``
+    colour channels) in tiles."""
     from .tiles import resolve_tile
 
-    size = resolve_tile(tile, shape)
+    size = resolve_tile(tile, shape, channels)
     return size is not None and max(shape) > size
 
 
@@ -377,12 +378,12 @@ def deblur(
     start = (L_init, vel0, effective_T(cap, tf), tf, rig.subframe_s, rig.leakage)
     if method != "vet":
         tile = None
-    tiled = _tiled(tile, cap.shape)
+    tiled = _tiled(tile, cap.shape, len(cap.channels))
     if tiled:
         from .joint import JointOptions
         from .tiles import deblur_in_tiles, resolve_tile
 
-        tile = resolve_tile(tile, cap.shape)
+        tile = resolve_tile(tile, cap.shape, len(cap.channels))
         opts = options if options is not None else JointOptions()
         if fuse_still is not None:
             opts = replace(opts, fuse_still=fuse_still)

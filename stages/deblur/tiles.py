@@ -39,19 +39,25 @@ MIN_TILE_PX = 64
 TILES_AT_ONCE = 2
 #: Tiles in flight per Dask worker (one solving, one on its way).
 DASK_AHEAD = 2
-#: ``tile="auto"``: frames with a side over AUTO_ABOVE_PX are solved in tiles of AUTO_TILE_PX.
+#: ``tile="auto"``: frames with a side over AUTO_ABOVE_PX are solved in tiles of AUTO_TILE_PX
+#: (colour), or of AUTO_TILE_PX_MONO where the capture has one channel: a tile's memory is
+#: mostly per channel, and a larger tile repeats less of its halo.
 AUTO_TILE_PX = 512
+AUTO_TILE_PX_MONO = 640
 AUTO_ABOVE_PX = 1024
 
 
-def resolve_tile(tile: int | str | None, shape: tuple[int, int]) -> int | None:
-    """The tile size for a frame of ``shape`` (H, W): an int as given, ``"auto"`` (tiles
-    of :data:`AUTO_TILE_PX` on frames with a side over :data:`AUTO_ABOVE_PX`, else one
-    solve), ``None`` or ``"none"`` for one solve."""
+def resolve_tile(tile: int | str | None, shape: tuple[int, int], channels: int = 3) -> int | None:
+    """The tile size for a frame of ``shape`` (H, W) of ``channels`` colour channels: an
+    int as given, ``"auto"`` (tiles of :data:`AUTO_TILE_PX`, or :data:`AUTO_TILE_PX_MONO`
+    for one channel, on frames with a side over :data:`AUTO_ABOVE_PX`, else one solve),
+    ``None`` or ``"none"`` for one solve."""
     if tile is None or tile == "none":
         return None
     if tile == "auto":
-        return AUTO_TILE_PX if max(shape) > AUTO_ABOVE_PX else None
+        if max(shape) <= AUTO_ABOVE_PX:
+            return None
+        return AUTO_TILE_PX_MONO if channels == 1 else AUTO_TILE_PX
     if isinstance(tile, bool) or not isinstance(tile, int) or tile < MIN_TILE_PX:
         raise InputError(f"tile must be auto, none or an integer >= {MIN_TILE_PX}, got {tile!r}")
     return tile
