@@ -335,6 +335,35 @@ def test_deblur_mask_says_what_deblur_did():
     np.testing.assert_array_equal(img.mask[~replaced], st.mask[~replaced])
 
 
+def test_the_smoothness_weights_are_their_formula_pixel_by_pixel():
+    # Each difference's weight lam min(prec) / sqrt(1 + (dL / (edge max(ref)))^2) over
+    # the pair of pixels it joins, the edge scale edge_snr / sqrt(prec ref^2) clipped
+    # to [EDGE_REL_MIN, edge_rel] (the larger of the pair's); zero past the last column
+    # (x) and row (y). Computed here one pixel at a time, in float64: the same numbers.
+    from stages.deblur.image_step import smooth_weights
+    from stages.deblur.joint_options import EDGE_REL_MIN
+
+    rng = np.random.default_rng(4)
+    shape = (5, 7, 2)
+    L, ref, prec = (rng.lognormal(2.0, 1.5, shape) for _ in range(3))
+    lam, edge_rel, edge_snr = 0.15, 0.08, 3.0
+    sx, sy = smooth_weights(L, ref, prec, lam, edge_rel, edge_snr)
+
+    def edge(p):
+        e = edge_snr / np.sqrt(max(prec[p] * ref[p] * ref[p], 1.0))
+        return min(max(e, EDGE_REL_MIN), edge_rel)
+
+    for (y, x, c), _ in np.ndenumerate(L):
+        for got, q in ((sx, (y, x + 1, c)), (sy, (y + 1, x, c))):
+            p = (y, x, c)
+            if q[0] == shape[0] or q[1] == shape[1]:
+                assert got[p] == 0.0
+                continue
+            scale = max(edge(p), edge(q)) * max(ref[p], ref[q])
+            want = lam * min(prec[p], prec[q]) / np.sqrt(1.0 + ((L[q] - L[p]) / scale) ** 2)
+            assert got[p] == pytest.approx(want, rel=1e-13)
+
+
 def test_the_smoothness_keeps_low_contrast_texture_where_the_data_resolve_it():
     """A 3% step: where the pixel gathered 10^4 electrons (relative noise 1%) the edge
     scale falls to 3 sigma = 3% and the step is smoothed less than with the fixed 8%;

@@ -24,7 +24,7 @@ import scipy.sparse as sp
 from ..cluster import opencv_single_threaded, solve_threads
 from .band import Band
 from .joint_options import EDGE_REL_MIN, JointOptions
-from .problem import Observations, grad, pcg
+from .problem import Observations, pcg
 from .stacked import SplitWeights, StackedOperator, diag_normal, product, row_blocks
 
 #: Blocks of rows the VET image's normal product is made in (:func:`solve_image`).
@@ -47,26 +47,37 @@ def smooth_weights(
     The Charbonnier scale is ``edge_rel`` (relative); with ``edge_snr`` > 0 it falls to
     ``edge_snr`` times the pixel's relative noise where that is smaller (a well-exposed
     pixel's low-contrast texture is kept), never below :data:`EDGE_REL_MIN`.
+
+    ``L`` (the image), ``ref`` (its reference levels) and ``prec`` (precisions) are
+    (H, W, C); returns ``sx``, ``sy`` (H, W, C) float64, zero on the last column and the
+    last row respectively.
     """
-    gx, gy = grad(L)
-    rx = np.maximum(ref, np.roll(ref, -1, axis=1))
-    ry = np.maximum(ref, np.roll(ref, -1, axis=0))
-    px = np.minimum(prec, np.roll(prec, -1, axis=1))
-    py = np.minimum(prec, np.roll(prec, -1, axis=0))
+    edge = None
     if edge_snr > 0:
         electrons = np.maximum(prec * ref * ref, 1.0)
         edge = np.clip(edge_snr / np.sqrt(electrons), EDGE_REL_MIN, edge_rel)
-        ex = np.maximum(edge, np.roll(edge, -1, axis=1))
-        ey = np.maximum(edge, np.roll(edge, -1, axis=0))
-    else:
-        ex = ey = edge_rel
-    cx = 1.0 / np.sqrt(1.0 + (gx / (ex * rx)) ** 2)
-    cy = 1.0 / np.sqrt(1.0 + (gy / (ey * ry)) ** 2)
-    sx = lam * px * cx
-    sy = lam * py * cy
-    sx[:, -1] = 0
-    sy[-1] = 0
-    return sx, sy
+    out = []
+    # The x and y differences' weights on the pixels that have a right (lower) neighbour
+    # (zero on the last column (row)), each in a few passes in place: the larger of the
+    # two pixels' reference levels and edge scales, the smaller of their precisions.
+    for here, there in (
+        ((slice(None), slice(0, -1)), (slice(None), slice(1, None))),
+        ((slice(0, -1),), (slice(1, None),)),
+    ):
+        scale = np.maximum(ref[here], ref[there], dtype=np.float64)
+        scale *= edge_rel if edge is None else np.maximum(edge[here], edge[there])
+        t = np.true_divide(L[there] - L[here], scale, out=scale)
+        t *= t
+        t += 1.0
+        np.sqrt(t, out=t)
+        np.true_divide(1.0, t, out=t)  # (the Charbonnier factor)
+        sm = np.minimum(prec[here], prec[there])
+        sm *= lam
+        sm *= t
+        full = np.zeros(np.broadcast_shapes(L.shape, ref.shape, prec.shape), sm.dtype)
+        full[here] = sm
+        out.append(full)
+    return out[0], out[1]
 
 
 def smooth_bands(sx: np.ndarray, sy: np.ndarray) -> tuple[list[Band], np.ndarray]:
