@@ -282,6 +282,10 @@ def test_layers_no_pixel_keeps_are_dropped():
     label, kept = _kept_layers(np.array([[0, 2], [2, 0]]), vels)
     assert label.tolist() == [[0, 1], [1, 0]]
     assert kept.tolist() == [[0.0, 0.0], [40.0, 10.0]]
+    # Numbered in the order of the old numbers, whichever are missing (here the first).
+    label, kept = _kept_layers(np.array([[2, 1, 1], [2, 2, 1]]), vels)
+    assert label.dtype == np.int32 and label.tolist() == [[1, 0, 0], [1, 1, 0]]
+    assert kept.tolist() == [[5.0, 0.0], [40.0, 10.0]]
 
 
 def test_a_candidate_layer_no_point_keeps_leaves_a_still_estimate(monkeypatch):

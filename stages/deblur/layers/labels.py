@@ -184,6 +184,11 @@ def merge_alike(label: np.ndarray, cands: list[np.ndarray]) -> tuple[np.ndarray,
 
 
 def kept_layers(label: np.ndarray, vels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The labels renumbered over the layers some pixel keeps, and those layers' velocities."""
-    used = np.unique(label)
-    return np.searchsorted(used, label).astype(np.int32), vels[used]
+    """The labels renumbered over the layers some pixel keeps, and those layers' velocities.
+
+    ``label`` (H, W) holds indices into ``vels`` (K, 2): which are used is counted, and
+    each pixel's new number looked up (not the labels sorted)."""
+    used = np.flatnonzero(np.bincount(label.reshape(-1), minlength=len(vels)))
+    number = np.zeros(max(len(vels), int(used[-1]) + 1 if used.size else 0), np.int32)
+    number[used] = np.arange(used.size, dtype=np.int32)
+    return number[label], vels[used]
