@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...cluster import in_order
 from .alignment import layer_cost
 
 #: The layered model is rejected when the dense long-baseline field explains this share
@@ -120,8 +121,12 @@ def layered_model_check(
         per_point = layer_cost(lv, slv, field, centres, trunc=25.0, visible=visible)
         return float((per_point * wt).sum())
 
-    zero = cost(np.zeros(2))
-    lay, den_cost = cost(layered, visible_points(label, vels, centres)), cost(smooth)
+    def score(k: int) -> float:  # (no motion, the layers with their occlusions, dense)
+        if k == 1:
+            return cost(layered, visible_points(label, vels, centres))
+        return cost(np.zeros(2) if k == 0 else smooth)
+
+    zero, lay, den_cost = in_order(score, 3)  # (each its own: on the process's threads)
     gain = zero - den_cost
     share = (lay - den_cost) / gain if gain > 0 else 0.0
     fits = not (gain >= LAYERED_MIN_GAIN and share >= LAYERED_MISS_SHARE)
