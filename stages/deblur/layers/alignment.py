@@ -137,6 +137,8 @@ def inside(v: np.ndarray, centres: np.ndarray, h: int, w: int, sel=None) -> np.n
     """Per bin, the scene points whose compensated position lies in the image, (B, H, W);
     ``sel``: at those indices alone (one velocity), (B, *sel[0].shape), the same values
     (a point's row and column are each tested once for all the points)."""
+    if sel is not None and np.ndim(v) > 1:
+        raise ValueError("inside: points (sel) need one velocity, not a field")
     yy, xx = _grid(v, h, w)
     vx, vy = components(v)
     ok = np.empty((len(centres), *((h, w) if sel is None else sel[0].shape)), bool)

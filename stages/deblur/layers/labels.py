@@ -188,7 +188,8 @@ def kept_layers(label: np.ndarray, vels: np.ndarray) -> tuple[np.ndarray, np.nda
 
     ``label`` (H, W) holds indices into ``vels`` (K, 2): which are used is counted, and
     each pixel's new number looked up (not the labels sorted)."""
-    used = np.flatnonzero(np.bincount(label.reshape(-1), minlength=len(vels)))
-    number = np.zeros(max(len(vels), int(used[-1]) + 1 if used.size else 0), np.int32)
+    counts = np.bincount(label.reshape(-1), minlength=len(vels))
+    used = np.flatnonzero(counts)
+    number = np.zeros(counts.size, np.int32)
     number[used] = np.arange(used.size, dtype=np.int32)
     return number[label], vels[used]

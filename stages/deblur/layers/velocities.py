@@ -13,8 +13,8 @@ MIN_MODE_SHARE = 0.02
 #: At most this many moving layers.
 MAX_MOVING_LAYERS = 3
 #: The velocity search (:func:`refine_velocity`) reads at most this many of a layer's
-#: points, a fixed draw of them: the mean cost of that many points already ranks
-#: velocities a sixteenth of a pixel per second apart as all of them do.
+#: points, a fixed draw of them: each of its evaluations costs in proportion to the
+#: points it reads, while a layer's alignment is as clear in this many as in all.
 REFINE_POINTS = 32768
 
 
