@@ -407,6 +407,22 @@ def test_the_layer_cost_at_points_is_the_maps_there(monkeypatch, row):
         np.testing.assert_array_equal(at, whole[ys, xs])
 
 
+def test_the_in_image_test_at_points_is_the_grids_there():
+    # At points (one velocity), each point's test is its row's and its column's; a
+    # velocity field has no such rows and columns, and is refused.
+    from stages.deblur.layers.alignment import inside, point_grid
+
+    rng = np.random.default_rng(2)
+    centres = np.linspace(0.05, 0.95, 5)
+    ys, xs = rng.integers(0, 20, 60), rng.integers(0, 30, 60)
+    sel = point_grid(ys, xs)
+    for v in (np.array([14.0, -9.5]), np.array([-40.0, 3.0])):
+        whole = inside(v, centres, 20, 30)
+        np.testing.assert_array_equal(inside(v, centres, 20, 30, sel), whole[:, sel[0], sel[1]])
+    with pytest.raises(ValueError, match="one velocity"):
+        inside(np.zeros((20, 30, 2)), centres, 20, 30, sel)
+
+
 def test_the_velocity_search_on_a_draw_of_points_finds_the_motion(monkeypatch):
     # A layer with more points than the search reads: a fixed draw of them finds the
     # true velocity (to the search's finest step) as all of them do, the same every run.
