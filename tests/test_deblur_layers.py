@@ -455,7 +455,15 @@ def test_the_velocity_search_on_a_draw_of_points_finds_the_motion(monkeypatch):
     start = truth + np.array([0.75, -0.625])  # (the truth on the search's grid)
     every = refine_velocity(lv, slv, start, centres, weight)
     monkeypatch.setattr(velocities, "REFINE_POINTS", 300)  # of the 2560 weighted points
+    read = []  # (how many points each evaluation reads)
+    cost = velocities.layer_cost
+    monkeypatch.setattr(
+        velocities,
+        "layer_cost",
+        lambda *a, **k: read.append(k["points"][0].size) or cost(*a, **k),
+    )
     drawn = refine_velocity(lv, slv, start, centres, weight)
+    assert read and set(read) == {300}
     np.testing.assert_array_equal(refine_velocity(lv, slv, start, centres, weight), drawn)
     for v in (every, drawn):
         assert np.abs(v - truth).max() <= 0.0625
