@@ -380,3 +380,65 @@ def dask_client(
         yield client
     finally:
         _close(client, cluster)
+
+
+def _import_modules(names: tuple[str, ...]) -> None:
+    """Import ``names`` (on a worker: what its first task would import)."""
+    import importlib
+
+    for name in names:
+        importlib.import_module(name)
+
+
+class ClientSoon:
+    """:func:`dask_client` started on a thread of its own when made, so that the cluster
+    starts (an embedded one's processes spawned, an existing one's scheduler reached)
+    and its workers import ``warm`` (module names) while the caller goes on with work of
+    its own; :meth:`client` waits for it. A context manager: leaving it closes the client
+    (and an embedded cluster) as :func:`dask_client` does, also when it was never asked
+    for. :meth:`client` raises what starting raised (:class:`~stages.errors.VetError`
+    where the scheduler cannot be reached or no worker joins it); ``info`` is
+    :func:`dask_client`'s."""
+
+    def __init__(
+        self, workers: int, scheduler: str | None = None, warm: tuple[str, ...] = ()
+    ) -> None:
+        self.info: dict[str, Any] = {}
+        self._started: contextlib.AbstractContextManager | None = None
+        self._client: Any = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(
+            target=self._start, args=(workers, scheduler, warm), name="vet-dask-start"
+        )
+        self._thread.start()
+
+    def _start(self, workers: int, scheduler: str | None, warm: tuple[str, ...]) -> None:
+        try:
+            started = dask_client(workers, scheduler, self.info)
+            self._client = started.__enter__()
+            self._started = started
+        except BaseException as exc:  # noqa: BLE001 - raised where the client is asked for
+            self._error = exc
+            return
+        if warm:
+            try:
+                self._client.run(_import_modules, warm)
+            except Exception as exc:  # noqa: BLE001 - the tasks import them anyway, and say so
+                logging.getLogger(__name__).debug(
+                    "dask: warming the workers: %s: %s", type(exc).__name__, exc
+                )
+
+    def client(self) -> Any:
+        """The client, once started (raises what starting raised)."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._client
+
+    def __enter__(self) -> ClientSoon:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._thread.join()
+        if self._started is not None:
+            self._started.__exit__(None, None, None)

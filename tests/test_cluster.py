@@ -142,3 +142,38 @@ def test_one_thread_here_and_opencv_on_one_thread_from_several_threads():
     assert cv2.getNumThreads() == before
     assert seen["first"] == 1
     assert seen["main"] == cluster.solve_threads()
+
+
+def _imported(name: str) -> bool:
+    import sys
+
+    return name in sys.modules
+
+
+def test_a_client_started_soon_has_its_workers_import_what_it_was_asked_to():
+    # (vet deblur starts its cluster while the motion is estimated: the workers then
+    # hold the solve's modules before the first tile reaches them)
+    from stages.cluster import ClientSoon
+
+    with ClientSoon(1, warm=("stages.deblur.joint",)) as soon:
+        client = soon.client()
+        assert soon.info["workers"] == 1
+        assert list(client.run(_imported, "stages.deblur.joint").values()) == [True]
+        assert list(client.run(_imported, "stages.deblur.paper").values()) == [False]
+        assert client.submit(_worker_omp, pure=False).result() == "1"
+
+
+def test_a_client_started_soon_says_when_its_scheduler_cannot_be_reached(monkeypatch):
+    import time
+
+    import pytest
+
+    from stages import cluster
+    from stages.errors import VetError
+
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 1.0)
+    t0 = time.monotonic()
+    with cluster.ClientSoon(1, "tcp://127.0.0.1:9") as soon:  # (nothing listens there)
+        with pytest.raises(VetError, match="cannot reach the Dask scheduler at tcp://127.0.0.1:9"):
+            soon.client()
+    assert time.monotonic() - t0 < 20

@@ -29,6 +29,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,10 +41,20 @@ from ..measure_grid import register_measure
 from .bins_first import bins_first
 from .operator import Layers
 
+if TYPE_CHECKING:
+    from ..cluster import ClientSoon
+
 log = logging.getLogger(__name__)
 
 METHODS = ("vet", "paper")
 MOTION_INITS = ("layers", "paths", "farneback", "dis", "truth", "zero")
+#: What a Dask worker imports to solve a tile (imported as its cluster starts).
+TILE_MODULES = (
+    "stages.deblur.tiles",
+    "stages.deblur.joint",
+    "stages.deblur.problem",
+    "stages.deblur.image_step",
+)
 #: The default deblur looks for a changing camera path on frames of at most this many
 #: pixels (its registration holds 48 group images of the frame: 0.27 GB at 1280 x 1024).
 PATHS_MAX_PIXELS = 1 << 21
@@ -222,6 +233,7 @@ def deblur(
     scheduler: str | None = None,
     release_stream: bool = False,
     motion_paths: Layers | None = None,
+    client_soon: ClientSoon | None = None,
 ) -> tuple[HDRImage, np.ndarray]:
     """Deblur a VET capture.
 
@@ -268,7 +280,9 @@ def deblur(
         the frame: one solve.
     workers, scheduler :
         Tiles run in-process (``workers`` 1, no ``scheduler``), else as Dask tasks on an
-        embedded LocalCluster of ``workers`` processes or on ``scheduler``.
+        embedded LocalCluster of ``workers`` processes or on ``scheduler``, started (and
+        its workers importing the solve) while the motion is estimated
+        (:class:`~stages.cluster.ClientSoon`, passed on as ``client_soon``).
     release_stream : bool
         The caller needs no more of ``cap.measure``: method ``vet`` sets it to None once
         it has made the time bins it fits (in one piece or for the tiles), so that the
@@ -298,6 +312,19 @@ def deblur(
     if fuse_still is not None and method != "vet":
         raise InputError("choosing what still pixels take applies to the vet method only")
     motion_init = motion_init or ("layers" if method == "vet" else "farneback")
+    if (
+        client_soon is None
+        and method == "vet"
+        and (workers > 1 or scheduler is not None)
+        and _tiled(tile, cap.shape, len(cap.channels))
+    ):
+        from ..cluster import ClientSoon
+
+        with ClientSoon(workers, scheduler, warm=TILE_MODULES) as soon:
+            return deblur(
+                cap, method, motion_init, progress, options, truth_cb, fuse_still, motion,
+                motion_model, tile, workers, scheduler, release_stream, motion_paths, soon,
+            )  # fmt: skip
     solve_progress = None
     if progress is not None:  # the motion estimate counts as the first step
         progress(0, 1)
@@ -428,6 +455,7 @@ def deblur(
             scheduler,
             solve_progress,
             paths=layers if layers is not None and layers.trajectory is not None else None,
+            soon=client_soon,
         )
         name = "vet-deblur"
         params = {"fuse_still": "auto" if opts.fuse_still is None else bool(opts.fuse_still)}

@@ -220,11 +220,14 @@ def deblur_in_tiles(
     scheduler: str | None = None,
     progress: Callable[[int, int], None] | None = None,
     paths: Any = None,
+    soon: Any = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Deblur ``cap`` tile by tile with the whole frame's ``velocity`` (H, W, 2) px/s,
     each tile by ``solve`` (:func:`stages.deblur.deblur`, passed in by its caller);
     ``paths``: that motion as :class:`~stages.deblur.operator.Layers` along their
     trajectories (a measured camera path), each tile solved along its crop of them.
+    ``soon``: the Dask client to run them on, started by the caller
+    (:class:`~stages.cluster.ClientSoon`; ``workers`` and ``scheduler`` are then its).
 
     Returns the blended radiance (H, W, C) in output units and a record ``{"size",
     "halo_px", "count", "executor", "workers", "still_pixels"}``.
@@ -250,6 +253,7 @@ def deblur_in_tiles(
         scheduler,
         progress,
         info,
+        soon,
     ):
         held[i] = result
         while (k := len(still)) in held:  # (the next tile in order, once it is in)
@@ -281,10 +285,12 @@ def _run(
     scheduler: str | None,
     progress: Callable[[int, int], None] | None,
     info: dict[str, Any],
+    soon: Any = None,
 ) -> Iterator[tuple[int, tuple[np.ndarray, str]]]:
     """Yield ``(tile index, deblur_tile result)`` as tiles finish: in-process with
-    ``workers <= 1`` and no ``scheduler``, else as Dask tasks."""
-    if scheduler is None and workers <= 1:
+    ``workers <= 1`` and no ``scheduler`` or ``soon``, else as Dask tasks (on ``soon``'s
+    client where given)."""
+    if soon is None and scheduler is None and workers <= 1:
         from ..cluster import in_order, one_thread_here, opencv_single_threaded, solve_threads
 
         info["executor"] = "in-process"
@@ -314,7 +320,12 @@ def _run(
 
     from ..cluster import dask_client
 
-    with dask_client(workers, scheduler, info) as client:
+    if soon is not None:  # (started by the caller, closed by it)
+        started = contextlib.nullcontext(soon.client())
+        info.update(soon.info)
+    else:
+        started = dask_client(workers, scheduler, info)
+    with started as client:
         # Each tile's data scattered to the workers (not in the task graph, which the
         # scheduler would unpickle and hold), DASK_AHEAD tiles a worker in flight: the
         # cluster holds a few tiles' data at a time, not the frame's.
