@@ -8,11 +8,13 @@ import pytest
 from click.testing import CliRunner
 
 from stages.deblur import deblur
+from stages.deblur.operator import Layers
 from stages.deblur.tiles import (
     Tile,
     blend_weight,
     crop_capture,
     halo_px,
+    halo_yx,
     resolve_tile,
     tile_grid,
 )
@@ -48,6 +50,30 @@ def test_halo_covers_the_longest_integration_path():
     assert halo_px(vel, 1.0, margin=0) == 50
     assert halo_px(vel, 0.5, margin=16) == 25 + 16
     assert halo_px(np.zeros((4, 4, 2)), 1.0, margin=16) == 16
+
+
+def test_halo_along_each_axis_covers_each_axis_reach():
+    # Rows by the vertical reach, columns by the horizontal: a pan grows tiles
+    # sideways by its path, and up and down by the margin alone.
+    vel = np.zeros((10, 10, 2), np.float32)
+    vel[3, 4] = (30.0, -4.0)
+    vel[5, 5] = (-10.0, 7.5)
+    assert halo_yx(vel, 1.0, margin=0) == (8, 30)
+    assert halo_yx(vel, 0.5, margin=16) == (4 + 16, 15 + 16)
+    assert halo_px(vel, 1.0, margin=0) == 31  # (the longest path: |(30, -4)|)
+    # A measured path reaches farther than its mean velocity: its displacements count.
+    paths = Layers(
+        np.zeros((10, 10), np.int32),
+        np.array([[0.0, 0.0]]),
+        [],
+        0,
+        trajectory=(np.array([0.0, 0.5, 1.0]), np.array([[[0.0, 0.0], [3.0, 12.0], [0.0, 0.0]]])),
+    )
+    assert halo_yx(np.zeros((10, 10, 2), np.float32), 1.0, margin=0, paths=paths) == (12, 3)
+    tiles = tile_grid((300, 530), 128, (5, 40))
+    for t in tiles:
+        y0, y1, x0, x1 = t.core
+        assert t.outer == (max(0, y0 - 5), min(300, y1 + 5), max(0, x0 - 40), min(530, x1 + 40))
 
 
 def test_blending_a_constant_reproduces_it_and_cores_weigh_one():

@@ -4,8 +4,9 @@ over workers.
 The motion is estimated once for the whole frame (:func:`stages.deblur.start_motion`), so
 every tile sees the same motion. The frame is cut into a grid of *cores* (each pixel in
 exactly one core); a tile is its core grown by a *halo* that covers every integration path
-reaching the core: ``halo = ceil(max speed * frame length) + margin`` pixels, where the
-speed is the largest in the motion estimate. Each tile is deblurred on its own (the
+reaching the core, along each axis: ``ceil(max |u| * frame length) + margin`` columns and
+``ceil(max |v| * frame length) + margin`` rows, ``(u, v)`` the motion estimate's velocities
+(:func:`halo_yx`; a horizontal pan grows tiles by the margin alone vertically). Each tile is deblurred on its own (the
 default method with the global motion fixed), and the tiles are blended with weights
 that are 1 on the core and fall linearly to 0 across the halo (1 up to the frame's own
 edges), so neighbouring solutions cross-fade instead of meeting at a seam.
@@ -90,12 +91,29 @@ def halo_px(
     return int(math.ceil(reach)) + margin
 
 
-def tile_grid(shape: tuple[int, int], tile: int, halo: int) -> list[Tile]:
+def halo_yx(
+    velocity: np.ndarray, frame_s: float, margin: int = HALO_MARGIN_PX, paths: Any = None
+) -> tuple[int, int]:
+    """:func:`halo_px` along each axis, ``(rows, columns)``: the farthest any integration
+    path gets from its place at t = 0 vertically and horizontally, plus ``margin``."""
+    reach = [0.0, 0.0]  # (x, y)
+    for a in (0, 1):
+        if velocity.size:
+            reach[a] = float(np.abs(velocity[..., a]).max()) * frame_s
+        if paths is not None and paths.trajectory is not None:
+            disp = np.asarray(paths.trajectory[1], np.float64)
+            if disp.size:
+                reach[a] = max(reach[a], float(np.abs(disp[..., a]).max()))
+    return int(math.ceil(reach[1])) + margin, int(math.ceil(reach[0])) + margin
+
+
+def tile_grid(shape: tuple[int, int], tile: int, halo: int | tuple[int, int]) -> list[Tile]:
     """Cores of at most ``tile`` x ``tile`` pixels covering ``shape`` (H, W), each grown by
-    ``halo`` (clipped to the frame)."""
+    ``halo`` pixels, or by ``(rows, columns)`` (:func:`halo_yx`) (clipped to the frame)."""
     if tile < MIN_TILE_PX:
         raise InputError(f"tile size must be at least {MIN_TILE_PX} pixels, got {tile}")
     h, w = shape
+    hy, hx = (halo, halo) if isinstance(halo, int) else halo
     ny, nx = max(1, math.ceil(h / tile)), max(1, math.ceil(w / tile))
     ys = np.linspace(0, h, ny + 1).round().astype(int)
     xs = np.linspace(0, w, nx + 1).round().astype(int)
@@ -104,10 +122,10 @@ def tile_grid(shape: tuple[int, int], tile: int, halo: int) -> list[Tile]:
         for j in range(nx):
             core = (int(ys[i]), int(ys[i + 1]), int(xs[j]), int(xs[j + 1]))
             outer = (
-                max(0, core[0] - halo),
-                min(h, core[1] + halo),
-                max(0, core[2] - halo),
-                min(w, core[3] + halo),
+                max(0, core[0] - hy),
+                min(h, core[1] + hy),
+                max(0, core[2] - hx),
+                min(w, core[3] + hx),
             )
             tiles.append(Tile(core, outer))
     return tiles
@@ -230,10 +248,11 @@ def deblur_in_tiles(
     (:class:`~stages.cluster.ClientSoon`; ``workers`` and ``scheduler`` are then its).
 
     Returns the blended radiance (H, W, C) in output units and a record ``{"size",
-    "halo_px", "count", "executor", "workers", "still_pixels"}``.
+    "halo_px", "halo_yx_px", "count", "executor", "workers", "still_pixels"}`` (the halo
+    along rows and columns, :func:`halo_yx`, and the wider of the two).
     """
     tf = float(cap.meta.get("integration_s", cap.rig.frame_s))
-    halo = halo_px(velocity, tf, paths=paths)
+    halo = halo_yx(velocity, tf, paths=paths)
     tiles = tile_grid(cap.shape, tile, halo)
     h, w = cap.shape
     acc = np.zeros((h, w, cap.I.shape[2]), np.float32)
@@ -266,7 +285,8 @@ def deblur_in_tiles(
     acc /= np.maximum(wsum, 1e-12)[..., None]
     record = {
         "size": int(tile),
-        "halo_px": int(halo),
+        "halo_px": int(max(halo)),
+        "halo_yx_px": [int(v) for v in halo],
         "count": len(tiles),
         "executor": info.get("executor", "in-process"),
         "workers": int(info.get("workers", 1)),
