@@ -322,9 +322,22 @@ def deblur(
 
         with ClientSoon(workers, scheduler, warm=TILE_MODULES) as soon:
             return deblur(
-                cap, method, motion_init, progress, options, truth_cb, fuse_still, motion,
-                motion_model, tile, workers, scheduler, release_stream, motion_paths, soon,
-            )  # fmt: skip
+                cap,
+                method=method,
+                motion_init=motion_init,
+                progress=progress,
+                options=options,
+                truth_cb=truth_cb,
+                fuse_still=fuse_still,
+                motion=motion,
+                motion_model=motion_model,
+                tile=tile,
+                workers=workers,
+                scheduler=scheduler,
+                release_stream=release_stream,
+                motion_paths=motion_paths,
+                client_soon=soon,
+            )
     solve_progress = None
     if progress is not None:  # the motion estimate counts as the first step
         progress(0, 1)

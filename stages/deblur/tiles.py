@@ -6,10 +6,11 @@ every tile sees the same motion. The frame is cut into a grid of *cores* (each p
 exactly one core); a tile is its core grown by a *halo* that covers every integration path
 reaching the core, along each axis: ``ceil(max |u| * frame length) + margin`` columns and
 ``ceil(max |v| * frame length) + margin`` rows, ``(u, v)`` the motion estimate's velocities
-(:func:`halo_yx`; a horizontal pan grows tiles by the margin alone vertically). Each tile is deblurred on its own (the
-default method with the global motion fixed), and the tiles are blended with weights
-that are 1 on the core and fall linearly to 0 across the halo (1 up to the frame's own
-edges), so neighbouring solutions cross-fade instead of meeting at a seam.
+(:func:`halo_yx`; a horizontal pan grows tiles by the margin alone vertically). Each tile
+is deblurred on its own (the default method with the global motion fixed), and the tiles
+are blended with weights that are 1 on the core and fall linearly to 0 across the halo (1
+up to the frame's own edges), so neighbouring solutions cross-fade instead of meeting at
+a seam.
 
 Tiles run in-process, :data:`TILES_AT_ONCE` at a time on the process's threads where
 it has the cores (each solved on one thread, the same image as one after the other), or
