@@ -221,13 +221,29 @@ def test_tiles_on_an_embedded_cluster_are_scattered_beside_their_tasks(
     # Each tile's data goes to the workers beside its task (no large task graph: Dask
     # warns of one over its threshold, lowered here below a tile's data), at most
     # DASK_AHEAD tiles a worker in flight, the next submitted as others finish; the
-    # image is the one solved in-process.
+    # image is the one solved in-process. The cluster starts before the motion is
+    # estimated (its start and the workers' imports overlap that work).
     import warnings
 
     import dask
     import distributed
 
+    import stages.deblur
+    from stages import cluster
     from stages.deblur import tiles
+
+    events = []
+
+    class Recorded(cluster.ClientSoon):
+        def __init__(self, *a, **kw):
+            events.append("cluster")
+            super().__init__(*a, **kw)
+
+    motion = stages.deblur.start_motion
+    monkeypatch.setattr(cluster, "ClientSoon", Recorded)
+    monkeypatch.setattr(
+        stages.deblur, "start_motion", lambda *a: events.append("motion") or motion(*a)
+    )
 
     in_flight = []
 
@@ -250,6 +266,7 @@ def test_tiles_on_an_embedded_cluster_are_scattered_beside_their_tasks(
         warnings.simplefilter("error")  # (a large-graph warning fails the test)
         spread, _ = deblur(cap, motion_init="truth", tile=64, workers=2)
     assert spread.meta["tiles"]["executor"].startswith("dask LocalCluster, 2 worker")
+    assert events == ["cluster", "motion"]
     assert spread.meta["tiles"]["count"] == alone.meta["tiles"]["count"] > 2
     assert len(in_flight) == spread.meta["tiles"]["count"] - 1  # (the first two, then one each)
     assert max(in_flight) <= 2  # (DASK_AHEAD x 2 workers)
