@@ -85,11 +85,17 @@ def halo_px(
     the farthest any layer gets from its place at t = 0."""
     speed = float(np.hypot(velocity[..., 0], velocity[..., 1]).max()) if velocity.size else 0.0
     reach = speed * frame_s
-    if paths is not None and paths.trajectory is not None:
-        disp = np.asarray(paths.trajectory[1], np.float64)
-        if disp.size:
-            reach = max(reach, float(np.hypot(disp[..., 0], disp[..., 1]).max()))
+    disp = _displacements(paths)
+    if disp.size:
+        reach = max(reach, float(np.hypot(disp[..., 0], disp[..., 1]).max()))
     return int(math.ceil(reach)) + margin
+
+
+def _displacements(paths: Any) -> np.ndarray:
+    """The displacements (..., 2) px of ``paths``' trajectories; empty without them."""
+    if paths is None or paths.trajectory is None:
+        return np.zeros((0, 2))
+    return np.asarray(paths.trajectory[1], np.float64)
 
 
 def halo_yx(
@@ -97,14 +103,13 @@ def halo_yx(
 ) -> tuple[int, int]:
     """:func:`halo_px` along each axis, ``(rows, columns)``: the farthest any integration
     path gets from its place at t = 0 vertically and horizontally, plus ``margin``."""
+    disp = _displacements(paths)
     reach = [0.0, 0.0]  # (x, y)
     for a in (0, 1):
         if velocity.size:
             reach[a] = float(np.abs(velocity[..., a]).max()) * frame_s
-        if paths is not None and paths.trajectory is not None:
-            disp = np.asarray(paths.trajectory[1], np.float64)
-            if disp.size:
-                reach[a] = max(reach[a], float(np.abs(disp[..., a]).max()))
+        if disp.size:
+            reach[a] = max(reach[a], float(np.abs(disp[..., a]).max()))
     return int(math.ceil(reach[1])) + margin, int(math.ceil(reach[0])) + margin
 
 
