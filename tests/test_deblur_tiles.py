@@ -159,6 +159,10 @@ def test_tiled_solve_matches_the_one_piece_solve(moving_capture):
     tiled, vel = deblur(cap, motion_init="truth", tile=96)
     assert tiled.meta["tiles"]["count"] == 2
     assert tiled.meta["tiles"]["halo_px"] == 30 + 16
+    assert tiled.meta["tiles"]["halo_yx_px"] == [
+        16,
+        30 + 16,
+    ]  # (a pan: the margin alone up and down)
     np.testing.assert_array_equal(vel, cap.truth_motion)
     a, b = _dark_rms(cap, whole), _dark_rms(cap, tiled)
     assert b <= a * 1.05, (a, b)
