@@ -11,8 +11,10 @@ from stages.deblur import deblur
 from stages.deblur.operator import Layers
 from stages.deblur.tiles import (
     Tile,
+    _grid,
     blend_weight,
     crop_capture,
+    grid_shape,
     halo_px,
     halo_yx,
     resolve_tile,
@@ -33,13 +35,15 @@ def test_cores_cover_every_pixel_once_and_halos_stay_in_frame():
     count = np.zeros(shape, int)
     for t in tiles:
         y0, y1, x0, x1 = t.core
-        assert y1 - y0 <= 128 and x1 - x0 <= 128
         count[y0:y1, x0:x1] += 1
         oy0, oy1, ox0, ox1 = t.outer
         assert (oy0, ox0) == (max(0, y0 - halo), max(0, x0 - halo))
         assert (oy1, ox1) == (min(300, y1 + halo), min(530, x1 + halo))
+        # no tile larger than a 128 x 128 core with its halo
+        assert (oy1 - oy0) * (ox1 - ox0) <= (128 + 2 * halo) ** 2
     assert np.all(count == 1)
-    assert len(tiles) == 3 * 5
+    # (edge tiles lose their halo outside the frame: fewer tiles than the 3 x 5 squares)
+    assert grid_shape(shape, 128, (halo, halo)) == (2, 4)
     with pytest.raises(InputError, match="at least 64"):
         tile_grid(shape, 32, halo)
 
@@ -74,6 +78,26 @@ def test_halo_along_each_axis_covers_each_axis_reach():
     for t in tiles:
         y0, y1, x0, x1 = t.core
         assert t.outer == (max(0, y0 - 5), min(300, y1 + 5), max(0, x0 - 40), min(530, x1 + 40))
+
+
+def outer_pixels(tiles):
+    return sum((t.outer[1] - t.outer[0]) * (t.outer[3] - t.outer[2]) for t in tiles)
+
+
+def test_a_pans_grid_runs_along_the_pan():
+    # A horizontal pan's halo is long sideways and short up and down: rows of tiles as
+    # wide as the frame allows solve less of it twice than squares do, and finish
+    # sooner two at a time; an even halo keeps the squares.
+    shape = (1024, 1280)
+    assert grid_shape(shape, 512, (16, 16)) == (2, 3)
+    assert grid_shape(shape, 512, (16, 46)) == (3, 2)
+    assert grid_shape(shape, 640, (16, 46)) == (4, 1)
+    assert grid_shape((1280, 1024), 640, (46, 16)) == (1, 4)  # (a vertical pan)
+    pan = tile_grid(shape, 512, (16, 46))
+    squares = _grid(shape, 2, 3, (16, 46))
+    assert outer_pixels(pan) < outer_pixels(squares)
+    most = max((t.outer[1] - t.outer[0]) * (t.outer[3] - t.outer[2]) for t in pan)
+    assert most <= (512 + 32) * (512 + 92)
 
 
 def test_blending_a_constant_reproduces_it_and_cores_weigh_one():
@@ -112,8 +136,8 @@ def test_resolve_tile():
 
 @pytest.fixture(scope="module")
 def moving_capture():
-    rig = RigParams(sensor_size=(192, 96))
-    scene = builtin_interior(192, 96)
+    rig = RigParams(sensor_size=(192, 128))
+    scene = builtin_interior(192, 128)
     return simulate(scene, parse_motion("translate:30,0"), rig, seed=3, methods=["vet"])["vet"]
 
 

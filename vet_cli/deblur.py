@@ -92,9 +92,9 @@ Example:
     show_default=True,
     metavar="N|auto|none",
     callback=lambda ctx, param, value: _tile_value(value),
-    help="Solve in overlapping N x N pixel tiles, the motion estimated once for the frame: "
-    "memory bounded by a tile. auto: tiles of 512 (640 for one channel) on frames over 1024 "
-    "pixels on a side; "
+    help="Solve in overlapping tiles of at most the pixels of an N x N core and its halo "
+    "(longer along the motion), the motion estimated once for the frame: memory bounded by "
+    "a tile. auto: N 512 (640 for one channel) on frames over 1024 pixels on a side; "
     "none: one solve. --method vet only.",
 )
 @click.option(

@@ -6,7 +6,10 @@ every tile sees the same motion. The frame is cut into a grid of *cores* (each p
 exactly one core); a tile is its core grown by a *halo* that covers every integration path
 reaching the core, along each axis: ``ceil(max |u| * frame length) + margin`` columns and
 ``ceil(max |v| * frame length) + margin`` rows, ``(u, v)`` the motion estimate's velocities
-(:func:`halo_yx`; a horizontal pan grows tiles by the margin alone vertically). Each tile
+(:func:`halo_yx`; a horizontal pan grows tiles by the margin alone vertically). The grid's
+rows and columns follow the halo (:func:`grid_shape`): a pan's cores are longer along it,
+so that less of the frame is solved twice, each tile no larger than a ``tile`` x ``tile``
+core with its halo. Each tile
 is deblurred on its own (the default method with the global motion fixed), and the tiles
 are blended with weights that are 1 on the core and fall linearly to 0 across the halo (1
 up to the frame's own edges), so neighbouring solutions cross-fade instead of meeting at
@@ -39,6 +42,8 @@ HALO_MARGIN_PX = 16
 MIN_TILE_PX = 64
 #: Tiles solved side by side in one process (each on one thread), where it has the cores.
 TILES_AT_ONCE = 2
+#: Tiles the grid is shaped for solving at once (:func:`grid_shape`; whatever runs them).
+GRID_AT_ONCE = 2
 #: Tiles in flight per Dask worker (one solving, one on its way).
 DASK_AHEAD = 2
 #: ``tile="auto"``: frames with a side over AUTO_ABOVE_PX are solved in tiles of AUTO_TILE_PX
@@ -50,10 +55,10 @@ AUTO_ABOVE_PX = 1024
 
 
 def resolve_tile(tile: int | str | None, shape: tuple[int, int], channels: int = 3) -> int | None:
-    """The tile size for a frame of ``shape`` (H, W) of ``channels`` colour channels: an
-    int as given, ``"auto"`` (tiles of :data:`AUTO_TILE_PX`, or :data:`AUTO_TILE_PX_MONO`
-    for one channel, on frames with a side over :data:`AUTO_ABOVE_PX`, else one solve),
-    ``None`` or ``"none"`` for one solve."""
+    """The tile size (:func:`tile_grid`'s ``tile``) for a frame of ``shape`` (H, W) of
+    ``channels`` colour channels: an int as given, ``"auto"`` (:data:`AUTO_TILE_PX`, or
+    :data:`AUTO_TILE_PX_MONO` for one channel, on frames with a side over
+    :data:`AUTO_ABOVE_PX`, else one solve), ``None`` or ``"none"`` for one solve."""
     if tile is None or tile == "none":
         return None
     if tile == "auto":
@@ -114,13 +119,20 @@ def halo_yx(
 
 
 def tile_grid(shape: tuple[int, int], tile: int, halo: int | tuple[int, int]) -> list[Tile]:
-    """Cores of at most ``tile`` x ``tile`` pixels covering ``shape`` (H, W), each grown by
-    ``halo`` pixels, or by ``(rows, columns)`` (:func:`halo_yx`) (clipped to the frame)."""
+    """Cores covering ``shape`` (H, W), each grown by ``halo`` pixels, or by ``(rows,
+    columns)`` (:func:`halo_yx`) (clipped to the frame), in rows and columns
+    (:func:`grid_shape`): no tile, halo included, larger than a ``tile`` x ``tile`` core
+    grown by the halo."""
     if tile < MIN_TILE_PX:
         raise InputError(f"tile size must be at least {MIN_TILE_PX} pixels, got {tile}")
-    h, w = shape
     hy, hx = (halo, halo) if isinstance(halo, int) else halo
-    ny, nx = max(1, math.ceil(h / tile)), max(1, math.ceil(w / tile))
+    return _grid(shape, *grid_shape(shape, tile, (hy, hx)), (hy, hx))
+
+
+def _grid(shape: tuple[int, int], ny: int, nx: int, halo: tuple[int, int]) -> list[Tile]:
+    """``ny`` x ``nx`` cores of near-equal sides covering ``shape``, grown by ``halo``."""
+    h, w = shape
+    hy, hx = halo
     ys = np.linspace(0, h, ny + 1).round().astype(int)
     xs = np.linspace(0, w, nx + 1).round().astype(int)
     tiles = []
@@ -135,6 +147,42 @@ def tile_grid(shape: tuple[int, int], tile: int, halo: int | tuple[int, int]) ->
             )
             tiles.append(Tile(core, outer))
     return tiles
+
+
+def grid_shape(shape: tuple[int, int], tile: int, halo: tuple[int, int]) -> tuple[int, int]:
+    """Rows and columns of cores for ``shape`` (H, W): of the grids whose every tile
+    (halo included) has at most the pixels of a ``tile`` x ``tile`` core grown by
+    ``halo`` (rows, columns), the one whose tiles, solved in order :data:`GRID_AT_ONCE`
+    at a time with a tile's cost its pixels, finish first; then
+    the one with the fewest pixels in all, then the fewest tiles. A halo that is longer
+    along one axis (a pan) gets cores that are longer along it, so less of the frame is
+    solved twice; an even halo gets the square grid. The same grid however the tiles
+    are run (the same image on any number of workers)."""
+    h, w = shape
+    hy, hx = halo
+    most = min(tile + 2 * hy, h) * min(tile + 2 * hx, w)
+    square = (max(1, math.ceil(h / tile)), max(1, math.ceil(w / tile)))
+
+    def lengths(n: int, size: int, grow: int) -> np.ndarray:  # (the tiles' along an axis)
+        cuts = np.linspace(0, size, n + 1).round().astype(int)
+        return np.minimum(cuts[1:] + grow, size) - np.maximum(cuts[:-1] - grow, 0)
+
+    best, best_key = square, None
+    # (Up to four times the square grid's count along each axis: no finer grid finishes
+    # sooner.)
+    for ny in range(1, min(max(1, h // MIN_TILE_PX), 4 * square[0]) + 1):
+        rows = lengths(ny, h, hy)
+        for nx in range(1, min(max(1, w // MIN_TILE_PX), 4 * square[1]) + 1):
+            areas = np.outer(rows, lengths(nx, w, hx)).ravel()  # (in the tiles' order)
+            if areas.max() > most:
+                continue
+            load = [0] * GRID_AT_ONCE
+            for a in areas.tolist():  # (each tile to the first thread free)
+                load[load.index(min(load))] += a
+            key = (max(load), int(areas.sum()), ny * nx)
+            if best_key is None or key < best_key:
+                best, best_key = (ny, nx), key
+    return best
 
 
 def blend_weight(tile: Tile, shape: tuple[int, int], halo: int) -> np.ndarray:

@@ -5,8 +5,8 @@ reporting its wall time, peak memory (ru_maxrss of the process and of its worker
 processes), the dark-pixel RMS error in stops against the truth (as ``vet evaluate``
 scores) and the same error split into a band of 8 px on each side of every tile border
 (the seams) and the rest. Configurations: one solve (frames up to 1.4 MP), or where
-none fits, tiles half as large again, whose seams lie elsewhere (the band scored on them
-is the same content without this grid's seams); tiles in-process (the solver's own
+none fits, larger tiles whose seams lie elsewhere (:func:`control_grid`; the band scored
+on them is the same content without this grid's seams); tiles in-process (the solver's own
 threads, one a core); tiles on a Dask cluster of 1 worker and on one of 2 workers (one
 thread each, as ``vet deblur -j N`` runs them), so that "2 workers against 1" compares
 the same engine. Each deblur lets the capture's stream go once binned, as ``vet deblur``
@@ -57,7 +57,7 @@ def _deblur(path: str, tile: str, workers: str, seam_tile: int) -> dict:
     import numpy as np
 
     from stages.deblur import deblur
-    from stages.deblur.tiles import halo_px, tile_grid
+    from stages.deblur.tiles import halo_yx, tile_grid
     from stages.formats import read_capture
     from stages.metrics import measurable_floor, stops_error
 
@@ -86,6 +86,13 @@ def _deblur(path: str, tile: str, workers: str, seam_tile: int) -> dict:
     if cluster is not None:  # (each tile's start and end on its worker)
         watcher = distributed.Client(scheduler)
         stream = distributed.get_task_stream(watcher)
+    from stages.deblur import tiles
+
+    shaped = tiles.grid_shape
+    if tile.startswith("grid"):  # (the control: a grid given as rows x columns)
+        ny, nx = (int(v) for v in tile[4:].split("x"))
+        tiles.grid_shape = lambda *_: (ny, nx)
+        tile = str(max(cap.shape))
     with stream as tasks:
         img, vel = deblur(
             cap,
@@ -95,6 +102,7 @@ def _deblur(path: str, tile: str, workers: str, seam_tile: int) -> dict:
             release_stream=True,  # (as vet deblur runs it)
         )
     dt = time.perf_counter() - t0
+    tiles.grid_shape = shaped  # (the seam band below is the seam tile's own grid's)
     spans = []
     if cluster is not None:
         for task in tasks.data:
@@ -124,7 +132,7 @@ def _deblur(path: str, tile: str, workers: str, seam_tile: int) -> dict:
         h, w = cap.shape
         seam = np.zeros((h, w), bool)
         tf = float(cap.meta.get("integration_s", rig.frame_s))
-        for t in tile_grid((h, w), seam_tile, halo_px(vel, tf)):
+        for t in tile_grid((h, w), seam_tile, halo_yx(vel, tf)):
             y0, y1, x0, x1 = t.core
             for y in (y0, y1):
                 if 0 < y < h:
@@ -148,6 +156,45 @@ def _child(*args: str) -> dict | None:
     return json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
 
 
+def _seams(grid: list, shape: tuple[int, int]) -> tuple[set, set]:
+    """The rows and columns where ``grid``'s cores meet inside the frame."""
+    h, w = shape
+    rows = {y for t in grid for y in t.core[:2] if 0 < y < h}
+    cols = {x for t in grid for x in t.core[2:] if 0 < x < w}
+    return rows, cols
+
+
+def control_grid(shape: tuple[int, int], tile: int) -> tuple[int, int]:
+    """Rows and columns of a grid none of whose core borders lies within ``2 * SEAM_PX``
+    of one of ``tile``'s grid (for the simulated pan's halo), each tile no larger than
+    one of 1.5 times ``tile`` (:func:`~stages.deblur.tiles.tile_grid`'s bound): of those,
+    the one whose tiles hold the fewest pixels in all, then the fewest tiles. Its solve
+    scores the content of ``tile``'s seam band away from seams of its own."""
+    import numpy as np
+
+    from stages.deblur.tiles import _grid, halo_yx, tile_grid
+    from stages.rig import RigParams
+
+    halo = halo_yx(np.array([[[30.0, 0.0]]], np.float32), RigParams().frame_s)
+    rows, cols = _seams(tile_grid(shape, tile, halo), shape)
+    big = tile * 3 // 2
+    most = (big + 2 * halo[0]) * (big + 2 * halo[1])
+    apart = lambda xs, ys: all(abs(a - b) > 2 * SEAM_PX for a in xs for b in ys)  # noqa: E731
+    best, best_key = None, None
+    for ny in range(1, 9):
+        for nx in range(1, 9):
+            grid = _grid(shape, ny, nx, halo)
+            crow, ccol = _seams(grid, shape)
+            areas = [(t.outer[1] - t.outer[0]) * (t.outer[3] - t.outer[2]) for t in grid]
+            key = (sum(areas), ny * nx)
+            if max(areas) <= most and apart(rows, crow) and apart(cols, ccol):
+                if best_key is None or key < best_key:
+                    best, best_key = (ny, nx), key
+    if best is None:
+        raise SystemExit(f"no control grid for {shape} beside {tile} px tiles")
+    return best
+
+
 def main(size: str = "2048x1536", tile: str = "1024") -> None:
     w, h = (int(v) for v in size.split("x"))
     with tempfile.TemporaryDirectory(prefix="vet-bench-tiles-") as tmp:
@@ -155,10 +202,9 @@ def main(size: str = "2048x1536", tile: str = "1024") -> None:
         t0 = time.perf_counter()
         _child("simulate", size, path)
         print(f"simulate {size} mono translate:30,0: {time.perf_counter() - t0:.1f} s", flush=True)
-        # Where no one-piece solve fits, tiles half as large again stand in for it: their
-        # seams lie elsewhere, so the band scored on them is the same content without
-        # this grid's seams.
-        control = "none" if w * h <= 1.4e6 else str(int(tile) * 3 // 2)
+        # Where no one-piece solve fits, larger tiles whose seams lie elsewhere stand in
+        # for it: the band scored on them is the same content without this grid's seams.
+        control = "none" if w * h <= 1.4e6 else "grid{}x{}".format(*control_grid((h, w), int(tile)))
         runs = [(control, "1")] + [(tile, "1"), (tile, "dask1"), (tile, "dask2")]
         results = {}
         for t, j in runs:
@@ -171,7 +217,8 @@ def main(size: str = "2048x1536", tile: str = "1024") -> None:
             elif j.startswith("dask"):
                 label = f"tiles {t} px, Dask, {j[4:]} worker(s)"
             else:
-                label = f"tiles {t} px, in-process" + (
+                kind = f"a {t[4:]} grid" if t.startswith("grid") else f"{t} px"
+                label = f"tiles {kind}, in-process" + (
                     f" (seam band: the {tile} px grid's)" if t != tile else ""
                 )
             seam = (
