@@ -92,7 +92,7 @@ def _deblur(path: str, tile: str, workers: str, seam_tile: int) -> dict:
     if tile.startswith("grid"):  # (the control: a grid given as rows x columns)
         ny, nx = (int(v) for v in tile[4:].split("x"))
         tiles.grid_shape = lambda *_: (ny, nx)
-        tile = str(max(cap.shape))
+        tile = str(max(cap.shape) - 1)  # (any size under the frame's: the grid is given)
     with stream as tasks:
         img, vel = deblur(
             cap,
