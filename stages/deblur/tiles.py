@@ -176,6 +176,8 @@ def grid_shape(shape: tuple[int, int], tile: int, halo: tuple[int, int]) -> tupl
             areas = np.outer(rows, lengths(nx, w, hx)).ravel()  # (in the tiles' order)
             if areas.max() > most:
                 continue
+            if best_key is not None and areas.sum() / GRID_AT_ONCE > best_key[0]:
+                continue  # (it cannot finish sooner)
             load = [0] * GRID_AT_ONCE
             for a in areas.tolist():  # (each tile to the first thread free)
                 load[load.index(min(load))] += a
