@@ -93,6 +93,8 @@ def test_a_pans_grid_runs_along_the_pan():
     assert grid_shape(shape, 512, (16, 46)) == (3, 2)
     assert grid_shape(shape, 640, (16, 46)) == (4, 1)
     assert grid_shape((1280, 1024), 640, (46, 16)) == (1, 4)  # (a vertical pan)
+    # (where no grid of cores at least MIN_TILE_PX a side fits the bound: the squares)
+    assert grid_shape((100, 100), 64, (16, 16)) == (2, 2)
     pan = tile_grid(shape, 512, (16, 46))
     squares = _grid(shape, 2, 3, (16, 46))
     assert outer_pixels(pan) < outer_pixels(squares)

@@ -153,11 +153,11 @@ def grid_shape(shape: tuple[int, int], tile: int, halo: tuple[int, int]) -> tupl
     """Rows and columns of cores for ``shape`` (H, W): of the grids whose every tile
     (halo included) has at most the pixels of a ``tile`` x ``tile`` core grown by
     ``halo`` (rows, columns), the one whose tiles, solved in order :data:`GRID_AT_ONCE`
-    at a time with a tile's cost its pixels, finish first; then
-    the one with the fewest pixels in all, then the fewest tiles. A halo that is longer
-    along one axis (a pan) gets cores that are longer along it, so less of the frame is
-    solved twice; an even halo gets the square grid. The same grid however the tiles
-    are run (the same image on any number of workers)."""
+    at a time with a tile's cost its pixels, finish first; then the one with the fewest
+    pixels in all, then the fewest tiles (the square grid where none fits). A halo that
+    is longer along one axis (a pan) gets cores that are longer along it, so less of the
+    frame is solved twice; an even halo, a grid near the square one. The same grid
+    however the tiles are run (the same image on any number of workers)."""
     h, w = shape
     hy, hx = halo
     most = min(tile + 2 * hy, h) * min(tile + 2 * hx, w)
@@ -168,8 +168,8 @@ def grid_shape(shape: tuple[int, int], tile: int, halo: tuple[int, int]) -> tupl
         return np.minimum(cuts[1:] + grow, size) - np.maximum(cuts[:-1] - grow, 0)
 
     best, best_key = square, None
-    # (Up to four times the square grid's count along each axis: no finer grid finishes
-    # sooner.)
+    # (Up to four times the square grid's count along each axis: finer grids repeat
+    # more of their halos.)
     for ny in range(1, min(max(1, h // MIN_TILE_PX), 4 * square[0]) + 1):
         rows = lengths(ny, h, hy)
         for nx in range(1, min(max(1, w // MIN_TILE_PX), 4 * square[1]) + 1):
