@@ -40,7 +40,7 @@ def test_cores_cover_every_pixel_once_and_halos_stay_in_frame():
         assert (oy0, ox0) == (max(0, y0 - halo), max(0, x0 - halo))
         assert (oy1, ox1) == (min(300, y1 + halo), min(530, x1 + halo))
         # no tile larger than a 128 x 128 core with its halo
-        assert (oy1 - oy0) * (ox1 - ox0) <= (128 + 2 * halo) ** 2
+        assert t.pixels == (oy1 - oy0) * (ox1 - ox0) <= (128 + 2 * halo) ** 2
     assert np.all(count == 1)
     # (edge tiles lose their halo outside the frame: fewer tiles than the 3 x 5 squares)
     assert grid_shape(shape, 128, (halo, halo)) == (2, 4)
@@ -80,10 +80,6 @@ def test_halo_along_each_axis_covers_each_axis_reach():
         assert t.outer == (max(0, y0 - 5), min(300, y1 + 5), max(0, x0 - 40), min(530, x1 + 40))
 
 
-def outer_pixels(tiles):
-    return sum((t.outer[1] - t.outer[0]) * (t.outer[3] - t.outer[2]) for t in tiles)
-
-
 def test_a_pans_grid_runs_along_the_pan():
     # A horizontal pan's halo is long sideways and short up and down: rows of tiles as
     # wide as the frame allows solve less of it twice than squares do, and finish
@@ -97,9 +93,19 @@ def test_a_pans_grid_runs_along_the_pan():
     assert grid_shape((100, 100), 64, (16, 16)) == (2, 2)
     pan = tile_grid(shape, 512, (16, 46))
     squares = _grid(shape, 2, 3, (16, 46))
-    assert outer_pixels(pan) < outer_pixels(squares)
-    most = max((t.outer[1] - t.outer[0]) * (t.outer[3] - t.outer[2]) for t in pan)
-    assert most <= (512 + 32) * (512 + 92)
+    assert sum(t.pixels for t in pan) < sum(t.pixels for t in squares)
+    assert max(t.pixels for t in pan) <= (512 + 32) * (512 + 92)
+
+
+def test_the_grid_is_the_same_however_many_tiles_run_at_once(monkeypatch):
+    # (Tiles one at a time, or on any number of workers, blend the same image: the
+    # grid is shaped for GRID_AT_ONCE, not for what runs them.)
+    from stages.deblur import tiles
+
+    for at_once in (1, 2, 4):
+        monkeypatch.setattr(tiles, "TILES_AT_ONCE", at_once)
+        assert grid_shape((1024, 1280), 512, (16, 46)) == (3, 2)
+        assert grid_shape((1024, 1280), 640, (16, 46)) == (4, 1)
 
 
 def test_blending_a_constant_reproduces_it_and_cores_weigh_one():
@@ -107,7 +113,7 @@ def test_blending_a_constant_reproduces_it_and_cores_weigh_one():
     tiles = tile_grid(shape, 96, halo)
     acc, wsum = np.zeros(shape), np.zeros(shape)
     for t in tiles:
-        w = blend_weight(t, shape, halo)
+        w = blend_weight(t, shape)
         ys, xs = t.slices()
         assert w.shape == (ys.stop - ys.start, xs.stop - xs.start)
         cy, cx = t.slices("core")
@@ -121,7 +127,7 @@ def test_blending_a_constant_reproduces_it_and_cores_weigh_one():
     np.testing.assert_allclose(acc / wsum, 7.0)
     # a lone tile's weight is 1 everywhere (the frame's own edges do not fade)
     lone = Tile((0, 50, 0, 60), (0, 50, 0, 60))
-    assert np.all(blend_weight(lone, (50, 60), halo) == 1)
+    assert np.all(blend_weight(lone, (50, 60)) == 1)
 
 
 def test_resolve_tile():

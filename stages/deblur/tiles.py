@@ -9,11 +9,10 @@ reaching the core, along each axis: ``ceil(max |u| * frame length) + margin`` co
 (:func:`halo_yx`; a horizontal pan grows tiles by the margin alone vertically). The grid's
 rows and columns follow the halo (:func:`grid_shape`): a pan's cores are longer along it,
 so that less of the frame is solved twice, each tile no larger than a ``tile`` x ``tile``
-core with its halo. Each tile
-is deblurred on its own (the default method with the global motion fixed), and the tiles
-are blended with weights that are 1 on the core and fall linearly to 0 across the halo (1
-up to the frame's own edges), so neighbouring solutions cross-fade instead of meeting at
-a seam.
+core with its halo. Each tile is deblurred on its own (the default method with the global
+motion fixed), and the tiles are blended with weights that are 1 on the core and fall
+linearly to 0 across the halo (1 up to the frame's own edges), so neighbouring solutions
+cross-fade instead of meeting at a seam.
 
 Tiles run in-process, :data:`TILES_AT_ONCE` at a time on the process's threads where
 it has the cores (each solved on one thread, the same image as one after the other), or
@@ -77,6 +76,12 @@ class Tile:
     core: tuple[int, int, int, int]
     outer: tuple[int, int, int, int]
 
+    @property
+    def pixels(self) -> int:
+        """Pixels of the tile, halo included."""
+        y0, y1, x0, x1 = self.outer
+        return (y1 - y0) * (x1 - x0)
+
     def slices(self, box: str = "outer") -> tuple[slice, slice]:
         y0, y1, x0, x1 = getattr(self, box)
         return slice(y0, y1), slice(x0, x1)
@@ -133,8 +138,7 @@ def _grid(shape: tuple[int, int], ny: int, nx: int, halo: tuple[int, int]) -> li
     """``ny`` x ``nx`` cores of near-equal sides covering ``shape``, grown by ``halo``."""
     h, w = shape
     hy, hx = halo
-    ys = np.linspace(0, h, ny + 1).round().astype(int)
-    xs = np.linspace(0, w, nx + 1).round().astype(int)
+    ys, xs = _cuts(ny, h), _cuts(nx, w)
     tiles = []
     for i in range(ny):
         for j in range(nx):
@@ -147,6 +151,11 @@ def _grid(shape: tuple[int, int], ny: int, nx: int, halo: tuple[int, int]) -> li
             )
             tiles.append(Tile(core, outer))
     return tiles
+
+
+def _cuts(n: int, size: int) -> np.ndarray:
+    """The ``n + 1`` borders of ``n`` near-equal parts of ``size`` pixels."""
+    return np.linspace(0, size, n + 1).round().astype(int)
 
 
 def grid_shape(shape: tuple[int, int], tile: int, halo: tuple[int, int]) -> tuple[int, int]:
@@ -164,7 +173,7 @@ def grid_shape(shape: tuple[int, int], tile: int, halo: tuple[int, int]) -> tupl
     square = (max(1, math.ceil(h / tile)), max(1, math.ceil(w / tile)))
 
     def lengths(n: int, size: int, grow: int) -> np.ndarray:  # (the tiles' along an axis)
-        cuts = np.linspace(0, size, n + 1).round().astype(int)
+        cuts = _cuts(n, size)
         return np.minimum(cuts[1:] + grow, size) - np.maximum(cuts[:-1] - grow, 0)
 
     best, best_key = square, None
@@ -187,7 +196,7 @@ def grid_shape(shape: tuple[int, int], tile: int, halo: tuple[int, int]) -> tupl
     return best
 
 
-def blend_weight(tile: Tile, shape: tuple[int, int], halo: int) -> np.ndarray:
+def blend_weight(tile: Tile, shape: tuple[int, int]) -> np.ndarray:
     """Weight over ``tile.outer``: 1 on the core, falling linearly to 0 across the halo
     towards neighbouring tiles, 1 up to the frame's own edges."""
     h, w = shape
@@ -334,7 +343,7 @@ def deblur_in_tiles(
         while (k := len(still)) in held:  # (the next tile in order, once it is in)
             radiance, still_pixels = held.pop(k)
             ys, xs = tiles[k].slices()
-            wgt = blend_weight(tiles[k], (h, w), halo)
+            wgt = blend_weight(tiles[k], (h, w))
             acc[ys, xs] += radiance * wgt[..., None]
             wsum[ys, xs] += wgt
             still.append(still_pixels)

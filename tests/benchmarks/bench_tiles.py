@@ -185,7 +185,7 @@ def control_grid(shape: tuple[int, int], tile: int) -> tuple[int, int]:
         for nx in range(1, 9):
             grid = _grid(shape, ny, nx, halo)
             crow, ccol = _seams(grid, shape)
-            areas = [(t.outer[1] - t.outer[0]) * (t.outer[3] - t.outer[2]) for t in grid]
+            areas = [t.pixels for t in grid]
             key = (sum(areas), ny * nx)
             if max(areas) <= most and apart(rows, crow) and apart(cols, ccol):
                 if best_key is None or key < best_key:
