@@ -296,16 +296,6 @@ def _folder_toml(root: Path) -> dict:
     toml = root / "rig.toml"
     if not toml.is_file():
         return {}
-    import sys
+    from ..formats.limits import parse_toml
 
-    if sys.version_info >= (3, 11):
-        import tomllib
-    else:  # pragma: no cover
-        import tomli as tomllib
-
-    try:
-        with open(toml, "rb") as f:
-            data = tomllib.load(f)
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{toml}: not valid TOML ({exc})") from None
-    return data
+    return parse_toml(toml.read_bytes(), str(toml))

@@ -49,7 +49,6 @@ speaks the real protocol, with a throttled link and optional fault injection.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -57,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..formats.limits import parse_toml
 from ..formats.schema import check_rig_file
 from ..rig import RigParams
 from .cameras import Camera, OpenCVCamera
@@ -240,18 +240,10 @@ def open_sim_rig(opts: SimOptions) -> Rig:
 
 def load_rig_file(path: str | Path) -> dict[str, Any]:
     """Parse and check a rig TOML file."""
-    if sys.version_info >= (3, 11):
-        import tomllib
-    else:  # pragma: no cover
-        import tomli as tomllib
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: no such rig file (use --rig sim for the emulated rig)")
-    try:
-        with open(p, "rb") as f:
-            data = tomllib.load(f)
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: not a valid TOML rig file ({exc})") from None
+    data = parse_toml(p.read_bytes(), f"{p}: rig file")
     for section in ("lcos", "measurement_camera", "vet_camera"):
         if not isinstance(data.get(section), dict):
             raise InputError(f"{p}: rig file lacks the [{section}] section")

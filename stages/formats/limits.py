@@ -19,13 +19,15 @@ worker's memory or time:
   light compress far less than 100:1 with zip or EXR codecs; a bomb of zeros reaches
   about 1000:1 with deflate.
 - :data:`MAX_META_BYTES` (4 MiB) and :data:`MAX_META_DEPTH` (32 levels) for JSON
-  metadata, parsed without recursion errors.
+  metadata, parsed without recursion errors; integers in it (and in TOML files) of at
+  most :data:`MAX_INT_DIGITS` digits (64 bits), refused before they are converted.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import sys
 from typing import Any
 
 from ..errors import FormatError
@@ -64,6 +66,8 @@ SMALL_INPUT_BYTES = 64 * 1024**2
 #: Largest JSON metadata text (bytes, UTF-8) and nesting depth accepted.
 MAX_META_BYTES = 4 * 1024**2
 MAX_META_DEPTH = 32
+#: Most digits of an integer in metadata or a TOML file (2**64 has 20).
+MAX_INT_DIGITS = 20
 
 
 def check_size(nbytes: int, what: str, nbytes_on_disk: int | None = None) -> None:
@@ -168,7 +172,7 @@ def parse_json(
     if size > limit:
         raise FormatError(f"{what}: {kind} is {size} bytes, over the limit of {limit} bytes")
     try:
-        value = json.loads(text)
+        value = json.loads(text, parse_int=lambda digits: _bounded_int(digits, what, kind))
     except RecursionError:
         value = None
         depth = MAX_META_DEPTH + 1
@@ -181,3 +185,52 @@ def parse_json(
             f"{what}: {kind} is nested more than {MAX_META_DEPTH} levels deep; refusing it"
         )
     return value
+
+
+def _bounded_int(digits: str, what: str, kind: str) -> int:
+    """``int(digits)`` of at most :data:`MAX_INT_DIGITS` digits, else FormatError."""
+    n = len(digits.lstrip("-"))
+    if n > MAX_INT_DIGITS:
+        raise FormatError(
+            f"{what}: {kind} holds an integer of {n} digits; allowed at most {MAX_INT_DIGITS}"
+        )
+    return int(digits)
+
+
+def parse_toml(text: str | bytes, what: str) -> dict[str, Any]:
+    """Parse a TOML file's text or bytes (a rig file or profile), its integers bounded as
+    JSON's (:data:`MAX_INT_DIGITS`) and its nesting as :data:`MAX_META_DEPTH`.
+
+    Raises
+    ------
+    FormatError
+        Not UTF-8, not TOML, an integer of more digits, or nested too deep (one line
+        naming ``what``: ``not a valid TOML file (...)``).
+    """
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover
+        import tomli as tomllib
+
+    try:
+        data = tomllib.loads(text.decode("utf-8") if isinstance(text, bytes) else text)
+    except (ValueError, RecursionError) as exc:  # (decoding, TOML, int's digit limit)
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if "integer string conversion" in first:  # (int's own limit on digits)
+            first = f"an integer of thousands of digits; allowed at most {MAX_INT_DIGITS}"
+        raise FormatError(f"{what}: not a valid TOML file ({first[:120]})") from None
+    if _depth(data) > MAX_META_DEPTH:
+        raise FormatError(f"{what}: nested more than {MAX_META_DEPTH} levels deep; refusing it")
+    stack: list[Any] = [data]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, dict):
+            stack.extend(v.values())
+        elif isinstance(v, list):
+            stack.extend(v)
+        elif isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10**MAX_INT_DIGITS:
+            raise FormatError(
+                f"{what}: holds an integer of {len(str(abs(v)))} digits; allowed at most "
+                f"{MAX_INT_DIGITS}"
+            )
+    return data
