@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
+from .errors import FormatError, InputError
 from .physics import CellMap, cells_near
 from .rig import REAL_RIG_PARTS, RigParams
 
@@ -116,7 +116,13 @@ def rig_profile(spec: str, sensor_size: tuple[int, int], **overrides: Any) -> Ri
         merged["homography"] = relay_homography(
             tuple(merged["lcos_cells"]), tuple(merged["sensor_size"])
         )
-    return RigParams.from_dict(merged)
+    try:
+        return RigParams.from_dict(merged)
+    except InputError as exc:
+        if spec in PROFILES:
+            raise
+        w, h = merged["sensor_size"]
+        raise FormatError(f"{spec}: [params] on a {w}x{h} sensor: {exc}") from None
 
 
 #: Where the realistic profile's relay optics put the LCoS image against the ideal
@@ -148,9 +154,7 @@ def relay_homography(lcos_cells: tuple[int, int], sensor_size: tuple[int, int]) 
 
 
 def _profile_file(path: str) -> tuple[dict[str, Any], str]:
-    import tomllib
-
-    from .errors import FormatError
+    from .formats.limits import parse_toml
     from .formats.schema import check_rig_params
 
     p = Path(path)
@@ -159,13 +163,14 @@ def _profile_file(path: str) -> tuple[dict[str, Any], str]:
             f"{path}: no such rig profile (choose {', '.join(PROFILES)} or a TOML file)"
         )
     try:
-        data = tomllib.loads(p.read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise FormatError(f"{path}: not a readable TOML file ({exc})") from None
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    data = parse_toml(raw, path)
     base = data.get("profile", "ideal")
     if base not in PROFILES:
         raise FormatError(f"{path}: profile: {base!r}; allowed {', '.join(PROFILES)}")
-    params = check_rig_params(data, path) if "params" in data else {}
+    params = check_rig_params(data, path, whole=False) if "params" in data else {}
     return params, base
 
 

@@ -2,22 +2,74 @@
 
 A :class:`RigParams` travels inside every capture's metadata so that each later stage
 reconstructs with exactly the physics that made the data.
-"""
 
-from __future__ import annotations
+One schema. The fields of :class:`RigParams` are the one table of the rig's numbers: each
+names its type, its allowed range (pydantic ``Field`` bounds) and its default once.
+:data:`RIG_MODEL` is the pydantic model built from that table, with the relations between
+fields (:func:`check_relations`: a subframe within the frame, homographies finite,
+invertible and onto the sensor, a measurement camera that sees the VET frame, ...). It
+checks every rig: one made in code (``RigParams(...)`` raises :class:`InputError`) and one
+read from a file (:mod:`stages.formats.schema` validates files' ``rig`` with it, where
+types are strict: a string is never a number, a bool never an int).
+"""
 
 import dataclasses
 import math
+import re
+import typing
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, model_validator
 
 from .errors import InputError
 
 #: Most subframes one frame may hold (``frame_s / subframe_s``): bounds the work and
 #: memory of every stage that walks the subframes.
 MAX_SUBFRAMES = 100_000
+#: Largest sensor side (pixels) and LCoS side (cells) accepted.
+MAX_SENSOR_SIDE = 65536
+MAX_LCOS_SIDE = 16384
+#: Most measuring subframes a rig may drop, as a probability: a link that loses more
+#: than half its frames leaves too few to threshold on.
+MAX_DROP_RATE = 0.5
+#: How far (in sensor sizes) beyond the sensor a homography may put a corner of the LCoS
+#: or of the measurement camera: farther is no optics, but a number gone wrong.
+MAX_REACH_SIZES = 10
+#: Largest condition number of a homography (a finite, invertible, sane one).
+MAX_CONDITION = 1e12
+#: Least share of the VET sensor the measurement camera must image.
+MIN_MEASURE_COVER = 0.5
+#: Most VET pixels (along a side) one measuring pixel may span.
+MAX_MEASURE_PIXEL_PX = 8.0
+
+
+def _real(
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    above: float | None = None,
+    below: float | None = None,
+) -> Any:
+    """A finite float field, ``lo <= v <= hi`` (``above < v``, ``v < below``)."""
+    return Annotated[
+        float, Field(strict=True, allow_inf_nan=False, ge=lo, le=hi, gt=above, lt=below)
+    ]
+
+
+def _whole(lo: int, hi: int) -> Any:
+    """An int field, ``lo <= v <= hi`` (never a bool, never a float)."""
+    return Annotated[int, Field(strict=True, ge=lo, le=hi)]
+
+
+_SensorSide = _whole(1, MAX_SENSOR_SIDE)
+_LcosSide = _whole(1, MAX_LCOS_SIDE)
+_Row3 = Annotated[list[_real()], Field(min_length=3, max_length=3)]
+#: A 3x3 matrix, or empty for the default.
+_Matrix3 = Annotated[list[_Row3], Field(max_length=3)]
+#: (width, height), or empty for the default.
+_SizeOrNone = Annotated[tuple[_SensorSide, ...], Field(max_length=2)]
 
 
 def default_homography(
@@ -127,102 +179,61 @@ class RigParams:
         Probability that a measuring subframe is dropped (never reaches the host).
     """
 
-    frame_s: float = 0.99975
-    subframe_s: float = 0.00758
-    full_well_e: float = 10000.0
-    read_noise_e: float = 5.0
-    adc_bits: int = 12
-    dark_current_e_s: float = 10.0
-    threshold_frac: float = 0.8
-    latency_subframes: int = 1
-    leakage: float = 0.002
-    lcos_cells: tuple[int, int] = (1024, 600)
-    sensor_size: tuple[int, int] = (1280, 1024)
-    measure_fraction: float = 1.0
-    homography: list[list[float]] = field(default_factory=list)
-    black_level_dn: float = 64.0
-    measure_size: tuple[int, ...] = ()
-    measure_homography: list[list[float]] = field(default_factory=list)
-    measure_k1: float = 0.0
-    measure_k2: float = 0.0
-    measure_gain: float = 1.0
-    measure_vignetting: float = 0.0
-    relay_blur_px: float = 0.0
-    leakage_spread: float = 0.0
-    leakage_seed: int = 0
-    switch_s: float = 0.0
-    trigger_offset_s: float = 0.0
-    trigger_jitter_s: float = 0.0
-    drop_rate: float = 0.0
+    # The one table: type and allowed range, default. Relations: check_relations.
+    frame_s: _real(1e-6, 3600) = 0.99975
+    subframe_s: _real(hi=3600, above=0.0) = 0.00758
+    full_well_e: _real(1.0, 1e15) = 10000.0
+    read_noise_e: _real(0.0, 1e6) = 5.0
+    adc_bits: _whole(4, 24) = 12
+    dark_current_e_s: _real(0.0, 1e9) = 10.0
+    threshold_frac: _real(1e-6, 1.0) = 0.8
+    latency_subframes: _whole(0, MAX_SUBFRAMES) = 1
+    leakage: _real(0.0, below=1.0) = 0.002
+    lcos_cells: tuple[_LcosSide, _LcosSide] = (1024, 600)
+    sensor_size: tuple[_SensorSide, _SensorSide] = (1280, 1024)
+    measure_fraction: _real(1e-6, 100.0) = 1.0
+    homography: _Matrix3 = field(default_factory=list)
+    black_level_dn: _real(0.0, 2.0**24) = 64.0
+    measure_size: _SizeOrNone = ()
+    measure_homography: _Matrix3 = field(default_factory=list)
+    measure_k1: _real(-1.0, 1.0) = 0.0
+    measure_k2: _real(-1.0, 1.0) = 0.0
+    measure_gain: _real(1e-6, 100.0) = 1.0
+    measure_vignetting: _real(0.0, 10.0) = 0.0
+    relay_blur_px: _real(0.0, 100.0) = 0.0
+    leakage_spread: _real(0.0, 1.0) = 0.0
+    leakage_seed: _whole(0, 2**63 - 1) = 0
+    switch_s: _real(0.0, 3600.0) = 0.0
+    trigger_offset_s: _real(0.0, 3600.0) = 0.0
+    trigger_jitter_s: _real(0.0, 3600.0) = 0.0
+    drop_rate: _real(0.0, MAX_DROP_RATE) = 0.0
 
     def __post_init__(self) -> None:
-        self.lcos_cells = (int(self.lcos_cells[0]), int(self.lcos_cells[1]))
-        self.sensor_size = (int(self.sensor_size[0]), int(self.sensor_size[1]))
-        self.measure_size = tuple(int(v) for v in self.measure_size)
+        for f in dataclasses.fields(self):  # (numpy scalars, as computed, are numbers)
+            value = getattr(self, f.name)
+            if isinstance(value, np.generic):
+                setattr(self, f.name, value.item())
+        for name in ("lcos_cells", "sensor_size", "measure_size"):
+            value = getattr(self, name)
+            if isinstance(value, (list, tuple, np.ndarray)):
+                setattr(self, name, tuple(_as_int(v) for v in value))
+        if isinstance(self.homography, np.ndarray):
+            self.homography = self.homography.tolist()
+        if isinstance(self.measure_homography, np.ndarray):
+            self.measure_homography = self.measure_homography.tolist()
+        self.validate()
         if not self.homography:
             self.homography = default_homography(self.lcos_cells, self.sensor_size)
-        self.validate()
 
     def validate(self) -> None:
-        """Raise :class:`InputError` with a full sentence if a parameter is nonsense."""
-        checks = [
-            (self.frame_s > 0, "frame length must be positive"),
-            (0 < self.subframe_s <= self.frame_s, "subframe length must be in (0, frame length]"),
-            (
-                self.frame_s <= MAX_SUBFRAMES * self.subframe_s,
-                f"a frame may hold at most {MAX_SUBFRAMES} subframes "
-                f"(subframe length >= frame length / {MAX_SUBFRAMES})",
-            ),
-            (self.full_well_e > 0, "full well must be positive"),
-            (self.read_noise_e >= 0, "read noise must be non-negative"),
-            (4 <= self.adc_bits <= 24, "ADC depth must be 4 to 24 bits"),
-            (self.dark_current_e_s >= 0, "dark current must be non-negative"),
-            (
-                0 < self.threshold_frac <= 1,
-                "threshold must be a fraction of the full well in (0, 1]",
-            ),
-            (self.latency_subframes >= 0, "latency must be a non-negative number of subframes"),
-            (0 <= self.leakage < 1, "leakage must be in [0, 1)"),
-            (min(self.lcos_cells) > 0, "LCoS grid must have positive size"),
-            (min(self.sensor_size) > 0, "sensor must have positive size"),
-            (self.measure_fraction > 0, "measurement light fraction must be positive"),
-            (self.black_level_dn >= 0, "black level must be non-negative"),
-            (
-                len(self.measure_size) == 0
-                or (len(self.measure_size) == 2 and min(self.measure_size) > 0),
-                "measurement camera size must be (width, height) in pixels",
-            ),
-            (abs(self.measure_k1) <= 1 and abs(self.measure_k2) <= 1, "distortion |k| <= 1"),
-            (self.measure_gain > 0, "measurement gain must be positive"),
-            (0 <= self.measure_vignetting <= 10, "vignetting must be in [0, 10]"),
-            (0 <= self.relay_blur_px <= 100, "relay blur must be in [0, 100] px"),
-            (0 <= self.leakage_spread <= 1, "leakage spread must be in [0, 1]"),
-            (
-                0 <= self.leakage * (1 + self.leakage_spread) < 1,
-                "leakage * (1 + leakage_spread) must be below 1",
-            ),
-            (0 <= self.switch_s <= self.frame_s, "switching time must be in [0, frame length]"),
-            (
-                0
-                <= self.trigger_offset_s
-                <= self.frame_s - self.n_subframes * self.subframe_s + 1e-12,
-                "trigger offset must fit in the frame after its whole subframes",
-            ),
-            (0 <= self.trigger_jitter_s <= self.subframe_s, "jitter must be in [0, subframe]"),
-            (0 <= self.drop_rate < 1, "drop rate must be in [0, 1)"),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise InputError(f"invalid rig: {message}")
-        h = np.asarray(self.homography, dtype=float)
-        if h.shape != (3, 3) or not np.all(np.isfinite(h)) or abs(np.linalg.det(h)) < 1e-12:
-            raise InputError("invalid rig: homography must be a finite, invertible 3x3 matrix")
-        if self.measure_homography:
-            m = np.asarray(self.measure_homography, dtype=float)
-            if m.shape != (3, 3) or not np.all(np.isfinite(m)) or abs(np.linalg.det(m)) < 1e-12:
-                raise InputError(
-                    "invalid rig: measure_homography must be a finite, invertible 3x3 matrix"
-                )
+        """Raise :class:`InputError` (``invalid rig: field: ...``, one line) if a field is
+        outside its range or the fields contradict each other (:func:`check_relations`)."""
+        try:
+            RIG_MODEL.model_validate(
+                {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+            )
+        except ValidationError as exc:
+            raise InputError(f"invalid rig: {validation_message(exc)}") from None
 
     @property
     def measure_shape(self) -> tuple[int, int]:
@@ -302,7 +313,8 @@ class RigParams:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> RigParams:
+    def from_dict(cls, d: dict[str, Any]) -> "RigParams":
+        """The rig of a dict of fields (a file's ``rig``, a profile's ``[params]``)."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - names
         if unknown:
@@ -312,5 +324,217 @@ class RigParams:
         except (TypeError, ValueError) as exc:
             raise InputError(f"invalid rig: {exc}") from None
 
-    def replace(self, **changes: Any) -> RigParams:
-        return dataclasses.replace(self, **changes)
+    def replace(self, **changes: Any) -> "RigParams":
+        """A copy with ``changes``, checked as a new rig (InputError)."""
+        try:
+            return dataclasses.replace(self, **changes)
+        except TypeError as exc:
+            raise InputError(f"invalid rig: {exc}") from None
+
+
+def _as_int(v: Any) -> Any:
+    """A size's entry as an int when it is a whole number (the model refuses the rest)."""
+    if isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_)):
+        return int(v)
+    return v
+
+
+# --- relations between fields ------------------------------------------------------------
+
+
+def check_relations(rig: Any) -> None:
+    """Raise ValueError ``"field: what is wrong; allowed ..."`` where fields of ``rig``
+    (a validated :data:`RIG_MODEL`, each field in its own range) contradict each other."""
+    _check_clock(rig)
+    if rig.leakage * (1 + rig.leakage_spread) >= 1:
+        raise ValueError(
+            f"leakage_spread: leakage {rig.leakage:g} * (1 + {rig.leakage_spread:g}) reaches "
+            "1; allowed below 1"
+        )
+    hom = rig.homography or default_homography(rig.lcos_cells, rig.sensor_size)
+    _check_onto_sensor(hom, rig.lcos_cells, rig.sensor_size, "homography", "LCoS")
+    _check_measurement_camera(rig)
+
+
+def _check_clock(rig: Any) -> None:
+    """The subframes within the frame; switching, trigger offset and jitter within it."""
+    frame, sub = rig.frame_s, rig.subframe_s
+    if sub > frame:
+        raise ValueError(
+            f"subframe_s: {sub} s is longer than the frame (frame_s = {frame} s); subframe "
+            "length must be in (0, frame length]"
+        )
+    n = frame / sub
+    if n > MAX_SUBFRAMES:
+        raise ValueError(
+            f"subframe_s: {sub:g} s gives {n:.3g} subframes per frame; allowed at most "
+            f"{MAX_SUBFRAMES} subframes (subframe_s >= frame_s / {MAX_SUBFRAMES})"
+        )
+    whole = math.floor(n + 1e-9) * sub
+    for name, value, top, what in (
+        ("switch_s", rig.switch_s, frame, "the frame length"),
+        ("trigger_offset_s", rig.trigger_offset_s, frame - whole + 1e-12,
+         "the frame after its whole subframes"),
+        ("trigger_jitter_s", rig.trigger_jitter_s, sub, "one subframe"),
+    ):  # fmt: skip
+        if value > top:
+            raise ValueError(f"{name}: {value:g} s; allowed at most {what} ({max(top, 0):.6g} s)")
+
+
+def _corners(size: tuple[int, int]) -> np.ndarray:
+    w, h = size
+    return np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float)
+
+
+def _check_onto_sensor(
+    hom: list, size: tuple[int, int], sensor: tuple[int, int], name: str, what: str
+) -> np.ndarray:
+    """``hom`` maps a grid of ``size`` (W, H) onto the sensor: finite, well conditioned,
+    in front of it and not all off it; an LCoS's corners within :data:`MAX_REACH_SIZES`
+    sensor sizes (a camera may see far beyond the sensor). Returns the corners' (4, 2)
+    images."""
+    h = np.asarray(hom, float)
+    if h.shape != (3, 3):
+        raise ValueError(f"{name}: must be a 3x3 matrix")
+    with np.errstate(all="ignore"):
+        cond = float(np.linalg.cond(h)) if np.isfinite(h).all() else math.inf
+        corners = _corners(size) @ h.T
+        xy = corners[:, :2] / corners[:, 2:]
+    if not cond <= MAX_CONDITION:
+        raise ValueError(
+            f"{name}: condition number {cond:.3g}; allowed at most {MAX_CONDITION:g} (a finite, "
+            "invertible 3x3 matrix)"
+        )
+    if not np.isfinite(xy).all():
+        raise ValueError(f"{name}: maps {what} corners to infinity")
+    if np.any(corners[:, 2] <= 0):
+        raise ValueError(f"{name}: maps {what} corners behind the sensor (w <= 0)")
+    sw, sh = sensor
+    if min(xy[:, 0].max(), xy[:, 1].max()) <= 0 or xy[:, 0].min() >= sw or xy[:, 1].min() >= sh:
+        field_name = "lcos_cells" if what == "LCoS" else "measure_size"
+        raise ValueError(
+            f"{field_name}: the {size[0]}x{size[1]} {what} grid, through the {name}, misses "
+            f"the {sw}x{sh} sensor entirely"
+        )
+    far = MAX_REACH_SIZES
+    if what == "LCoS" and np.any(
+        np.abs(xy - [sw / 2, sh / 2]) > [(far + 0.5) * sw, (far + 0.5) * sh]
+    ):
+        raise ValueError(
+            f"{name}: maps the {what}'s corners as far as ({xy[:, 0].max():.3g}, "
+            f"{xy[:, 1].max():.3g}) px; allowed within {far} sensor sizes of the "
+            f"{sw}x{sh} sensor"
+        )
+    return xy
+
+
+def _check_measurement_camera(rig: Any) -> None:
+    """The measurement camera images most of the VET sensor, each of its pixels no more
+    than :data:`MAX_MEASURE_PIXEL_PX` VET pixels wide."""
+    if len(rig.measure_size) not in (0, 2):
+        raise ValueError("measure_size: must be [width, height] in pixels, or empty")
+    if not rig.measure_size and not rig.measure_homography:
+        return
+    size = tuple(rig.measure_size) or tuple(rig.sensor_size)
+    hom = rig.measure_homography or np.eye(3).tolist()
+    xy = _check_onto_sensor(hom, size, rig.sensor_size, "measure_homography", "measurement camera")
+    pixel = math.sqrt(abs(_area(xy)) / (size[0] * size[1]))
+    if pixel > MAX_MEASURE_PIXEL_PX:
+        raise ValueError(
+            f"measure_size: a pixel of the {size[0]}x{size[1]} measurement camera spans "
+            f"{pixel:.3g} VET pixels; allowed at most {MAX_MEASURE_PIXEL_PX:g}"
+        )
+    cover = _cover(np.asarray(hom, float), size, rig)
+    if cover < MIN_MEASURE_COVER:
+        sw, sh = rig.sensor_size
+        raise ValueError(
+            f"measure_size: the {size[0]}x{size[1]} measurement camera images "
+            f"{100 * cover:.3g}% of the {sw}x{sh} VET sensor; allowed at least "
+            f"{100 * MIN_MEASURE_COVER:g}%"
+        )
+
+
+def _area(xy: np.ndarray) -> float:
+    """Area of the quadrilateral of corners (0,0), (w,0), (0,h), (w,h)'s images."""
+    quad = xy[[0, 1, 3, 2]]
+    x, y = quad[:, 0], quad[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+def _cover(hom: np.ndarray, size: tuple[int, int], rig: Any, grid: int = 48) -> float:
+    """The share of the VET sensor's pixels (on a ``grid`` x ``grid`` sample) that fall in
+    the measurement camera's frame (through the inverse homography and the camera's
+    radial distortion, as :func:`stages.optics.vet_to_measure`)."""
+    sw, sh = rig.sensor_size
+    xs = (np.arange(min(grid, sw)) + 0.5) * sw / min(grid, sw)
+    ys = (np.arange(min(grid, sh)) + 0.5) * sh / min(grid, sh)
+    x, y = np.meshgrid(xs, ys)
+    with np.errstate(all="ignore"):
+        inv = np.linalg.inv(hom)
+        w = inv[2, 0] * x + inv[2, 1] * y + inv[2, 2]
+        u = (inv[0, 0] * x + inv[0, 1] * y + inv[0, 2]) / w
+        v = (inv[1, 0] * x + inv[1, 1] * y + inv[1, 2]) / w
+        cx, cy, r0 = size[0] / 2, size[1] / 2, math.hypot(*size) / 2
+        qx, qy = (u - cx) / r0, (v - cy) / r0
+        r2 = qx * qx + qy * qy
+        f = 1 + rig.measure_k1 * r2 + rig.measure_k2 * r2 * r2
+        du, dv = cx + r0 * qx * f, cy + r0 * qy * f
+        inside = (w > 0) & (du >= 0) & (du < size[0]) & (dv >= 0) & (dv < size[1])
+    return float(inside.mean())
+
+
+# --- the model ---------------------------------------------------------------------------
+
+
+def _relations(model: BaseModel) -> BaseModel:
+    check_relations(model)
+    return model
+
+
+def _rig_model(relations: bool) -> type[BaseModel]:
+    """The pydantic model of :class:`RigParams`'s table (its fields, types, ranges and
+    defaults), with :func:`check_relations` if ``relations``; unknown names are refused
+    (a typo)."""
+    hints = typing.get_type_hints(RigParams, include_extras=True)
+    fields: dict[str, Any] = {}
+    for f in dataclasses.fields(RigParams):
+        default = (
+            Field(default_factory=f.default_factory)
+            if f.default is dataclasses.MISSING
+            else f.default
+        )
+        fields[f.name] = (hints[f.name], default)
+    checks = {"relations": model_validator(mode="after")(_relations)} if relations else {}
+    return create_model(
+        "Rig" if relations else "RigFields",
+        __config__=ConfigDict(extra="forbid"),
+        __doc__=":class:`~stages.rig.RigParams` as stored in files (units in the names).",
+        __validators__=checks,
+        **fields,
+    )
+
+
+#: The model of a whole rig in files: :class:`RigParams`'s fields with their relations.
+RIG_MODEL = _rig_model(relations=True)
+#: The fields alone, for a part of a rig that others complete (a profile's or a rig
+#: file's ``[params]``: the relations hold once the caller's sensor size joins them).
+RIG_FIELDS_MODEL = _rig_model(relations=False)
+
+
+def validation_message(exc: ValidationError) -> str:
+    """The first error of ``exc`` as one line ``field: what is wrong (got value)``."""
+    err = exc.errors(include_url=False)[0]
+    loc = ".".join(str(p) for p in err["loc"])
+    msg = str(err["msg"])
+    if msg.startswith("Value error, "):  # (a relation names its field: "subframe_s: ...")
+        msg = msg[13:]
+        joint = "." if re.match(r"[A-Za-z_][\w.]*: ", msg) else ": "
+        return f"{loc}{joint}{msg}" if loc else msg
+    msg = msg.replace("Input should be", "must be").replace("Field required", "is missing")
+    got = err.get("input")
+    shown = (
+        ""
+        if err["type"] == "missing" or isinstance(got, (dict, list, tuple))
+        else f" (got {got!r:.60})"
+    )
+    return f"{loc or 'metadata'}: {msg}{shown}"

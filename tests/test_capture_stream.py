@@ -69,20 +69,24 @@ def test_one_time_bin_is_that_bin_of_all_of_them(many_bins_capture, n_bins):
 
 def _stream_capture(nb, dtype, h=6, w=5, ch=3, seed=0, values=(0, 4000)):
     """A capture of a stream of ``nb`` frames, int16 DN drawn from ``values`` [low, high)
-    (then as ``dtype``), some frames two subframes long."""
+    (then as ``dtype``), some frames two subframes long (their time bins as long, on the
+    rig's subframe clock, as the schema's relations ask)."""
     from stages.formats.capture import Capture
 
     rng = np.random.default_rng(seed)
     measure = rng.integers(*values, (nb, h, w, ch), dtype=np.int16).astype(dtype, copy=False)
-    times = np.stack([np.arange(nb), np.arange(1, nb + 1)], 1) * 0.0075
+    lengths = [1 + (k % 3 == 0) for k in range(nb)]
+    edges = np.concatenate([[0], np.cumsum(lengths)])
+    rig = RigParams(sensor_size=(w, h), frame_s=0.00758 * max(131, int(edges[-1])))
+    times = np.stack([edges[:-1], edges[1:]], 1) * rig.subframe_s
     return Capture(
         I=np.ones((h, w, ch), np.float32),
         T=np.full((h, w), 0.5, np.float32),
         channels=["R", "G", "B"][:ch],
-        rig=RigParams(sensor_size=(w, h)),
+        rig=rig,
         measure=measure,
         measure_times=times,
-        meta={"measure_subframes": [1 + (k % 3 == 0) for k in range(nb)]},
+        meta={"measure_subframes": lengths},
     )
 
 

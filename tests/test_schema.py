@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 
 import numpy as np
 import pytest
@@ -232,3 +233,33 @@ def test_provenance_inputs_are_file_records_or_names(tmp_path, capture_meta):
     bad = _mutated(tmp_path, source, _set("provenance", chain), "bad.npz")
     with pytest.raises(FormatError, match=r"provenance\.1\.inputs\.0"):
         read_layered(bad)
+
+
+def test_one_rig_schema_the_dataclass_table():
+    """Issue 53: the files' rig model is built from RigParams's own fields (types, ranges,
+    defaults and relations written once): the same names and defaults, the same refusals
+    in code (InputError) and in files (FormatError)."""
+    import dataclasses
+    import inspect
+
+    from stages.rig import RIG_MODEL, RigParams
+
+    assert schema.Rig is RIG_MODEL
+    fields = {f.name: f for f in dataclasses.fields(RigParams)}
+    assert set(RIG_MODEL.model_fields) == set(fields)
+    default = RIG_MODEL()
+    for name, f in fields.items():
+        want = f.default_factory() if f.default is dataclasses.MISSING else f.default
+        assert getattr(default, name) == want, name
+    assert "0.99975" not in inspect.getsource(schema)  # (no second table of defaults)
+    for bad, words in (
+        ({"drop_rate": 0.999999}, "drop_rate: must be less than or equal to 0.5"),
+        ({"homography": [[1e300, 0, 0], [0, 1, 0], [0, 0, 1]]}, "homography: condition"),
+        ({"sensor_size": (32, 24), "measure_size": (1, 1)}, "measure_size: the 1x1"),
+        ({"subframe_s": 2.0}, "subframe_s: 2.0 s is longer than the frame"),
+    ):
+        with pytest.raises(InputError, match=re.escape(f"invalid rig: {words}")):
+            RigParams(**bad)
+        with pytest.raises(FormatError, match=re.escape(f"f: {words}")):
+            schema.validate(schema.Rig, {k: list(v) if isinstance(v, tuple) else v
+                                         for k, v in bad.items()}, "f")  # fmt: skip

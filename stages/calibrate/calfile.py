@@ -257,8 +257,9 @@ def emulated_rig_truth(cal: Calibration, what: str = "calibration") -> dict[str,
         raise FormatError(f"{what}: its record of the emulated rig's truth is damaged")
     names = {f.name for f in dataclasses.fields(RigParams)}
     out = {k: v for k, v in truth.items() if k in names}
+    grid = {"sensor_size": tuple(cal.sensor_size), "lcos_cells": tuple(cal.lcos_cells)}
     try:
-        RigParams(**out)
+        RigParams(**{**grid, **out})  # (the rig of the calibration's own sensor)
     except (InputError, TypeError, ValueError) as exc:
         raise FormatError(
             f"{what}: its record of the emulated rig's truth is damaged ({exc})"

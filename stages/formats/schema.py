@@ -3,11 +3,15 @@
 Every reader validates what it parsed here before any work: the metadata of captures,
 HDR images, motion fields and calibrations (:func:`check_meta`, by ``kind``; files
 without a vet ``kind`` are foreign images and pass), their pixel layers against it
-(:func:`check_layers`: sizes, channels, subframe time bins, mask codes, exposure times),
+(:func:`check_layers`: sizes, channels, measuring layers one per time bin, mask codes),
 rig TOML files (:func:`check_rig_file`) and batch manifests (:func:`check_manifest`).
-Types are strict (a string is never a number, a bool never an int), numbers finite, and
-every range is stated in the message: one line naming the file, the field and what is
-allowed, raised as :class:`~stages.errors.FormatError` (exit 1 at the command line).
+Types are strict (a string is never a number, a bool never an int), numbers finite, a
+divisor a normal float32, and every range is stated in the message: one line naming the
+file, the field and what is allowed, raised as :class:`~stages.errors.FormatError` (exit 1
+at the command line). Relations between fields are checked too: a rig's by its own model
+(:data:`Rig` is :data:`stages.rig.RIG_MODEL`, built from :class:`~stages.rig.RigParams`'s
+table of fields), a capture's time bins, subframe counts and dropped subframes by
+:mod:`stages.formats.relations`.
 
 The models are `pydantic <https://docs.pydantic.dev>`_ v2 classes; their JSON Schema is
 ``Model.model_json_schema()``. Keys a model does not name are kept and not checked (files
@@ -20,23 +24,45 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..errors import FormatError
-from ..rig import MAX_SUBFRAMES
+from ..rig import (
+    MAX_LCOS_SIDE,
+    MAX_SENSOR_SIDE,
+    MAX_SUBFRAMES,
+    RIG_FIELDS_MODEL,
+    RIG_MODEL,
+    validation_message,
+)
+from . import relations
 
-#: Largest sensor side (pixels) and LCoS side (cells) accepted.
-MAX_SENSOR_SIDE = 65536
-MAX_LCOS_SIDE = 16384
 #: Fastest motion a motion field may hold, in image sizes (the larger side) per second.
 MAX_SPEED_IMAGES_PER_S = 100
 #: Most channels of one layer (Y, or R, G, B, plus spare).
 MAX_LAYER_CHANNELS = 16
+#: The smallest and largest scale a value is divided by or multiplied into float32 pixels
+#: with: a normal float32 (no denormal, whose reciprocal is infinite).
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 Float = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 Int = Annotated[int, Field(strict=True)]
 Str = Annotated[str, Field(strict=True, max_length=65536)]
 Positive = Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0)]
+
+
+def _normal_float32(value: float) -> float:
+    if not FLOAT32_TINY <= value <= FLOAT32_MAX:
+        raise ValueError(
+            f"{value:g} is not a normal float32 number (pixels divided by it would be "
+            f"infinite); allowed {FLOAT32_TINY:.3g} to {FLOAT32_MAX:.3g}"
+        )
+    return value
+
+
+#: A factor pixels are divided by: finite, positive and a normal float32.
+Scale = Annotated[Positive, AfterValidator(_normal_float32)]
 SensorSide = Annotated[int, Field(strict=True, ge=1, le=MAX_SENSOR_SIDE)]
 LcosSide = Annotated[int, Field(strict=True, ge=1, le=MAX_LCOS_SIDE)]
 SensorSize = Annotated[list[SensorSide], Field(min_length=2, max_length=2)]
@@ -49,76 +75,12 @@ class _Open(BaseModel):
     model_config = ConfigDict(extra="allow", strict=True)
 
 
-class Rig(BaseModel):
-    """:class:`~stages.rig.RigParams` as stored in files (units in the names)."""
-
-    model_config = ConfigDict(extra="forbid", strict=True)
-
-    frame_s: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=3600)] = 0.99975
-    subframe_s: Positive = 0.00758
-    full_well_e: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=1e9)] = 1e4
-    read_noise_e: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=1e6)] = 5.0
-    adc_bits: Annotated[int, Field(strict=True, ge=4, le=24)] = 12
-    dark_current_e_s: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=1e9)] = 10.0
-    threshold_frac: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=1)] = 0.8
-    latency_subframes: Annotated[int, Field(strict=True, ge=0, le=MAX_SUBFRAMES)] = 1
-    leakage: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, lt=1)] = 0.002
-    lcos_cells: LcosGrid = [1024, 600]
-    sensor_size: SensorSize = [1280, 1024]
-    measure_fraction: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=100)] = 1.0
-    homography: Matrix3 | Annotated[list, Field(max_length=0)] = []
-    black_level_dn: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=2**24)] = 64.0
-    # The parts of a real rig (stages.optics; the defaults are the ideal rig).
-    measure_size: SensorSize | Annotated[list, Field(max_length=0)] = []
-    measure_homography: Matrix3 | Annotated[list, Field(max_length=0)] = []
-    measure_k1: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-1, le=1)] = 0.0
-    measure_k2: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-1, le=1)] = 0.0
-    measure_gain: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=100)] = 1.0
-    measure_vignetting: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=10)] = 0.0
-    relay_blur_px: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=100)] = 0.0
-    leakage_spread: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=1)] = 0.0
-    leakage_seed: Annotated[int, Field(strict=True, ge=0, le=2**63 - 1)] = 0
-    switch_s: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=3600)] = 0.0
-    trigger_offset_s: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=3600)] = 0.0
-    trigger_jitter_s: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=3600)] = 0.0
-    drop_rate: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, lt=1)] = 0.0
-
-    @model_validator(mode="after")
-    def _consistent(self) -> Rig:
-        if self.subframe_s > self.frame_s:
-            raise ValueError(
-                f"subframe_s: {self.subframe_s} s is longer than the frame "
-                f"(frame_s = {self.frame_s} s); allowed (0, frame_s]"
-            )
-        n = self.frame_s / self.subframe_s
-        if n > MAX_SUBFRAMES:
-            raise ValueError(
-                f"subframe_s: {self.subframe_s:g} s gives {n:.3g} subframes per frame; "
-                f"allowed at most {MAX_SUBFRAMES} (subframe_s >= frame_s / {MAX_SUBFRAMES})"
-            )
-        if self.homography:
-            h = np.asarray(self.homography, float)
-            w, hh = self.lcos_cells
-            with np.errstate(all="ignore"):
-                if not abs(np.linalg.det(h)) >= 1e-12:
-                    raise ValueError("homography: must be an invertible 3x3 matrix")
-                corners = np.array([[0, 0, 1], [w, 0, 1], [0, hh, 1], [w, hh, 1]], float) @ h.T
-                xy = corners[:, :2] / corners[:, 2:]
-            if not np.isfinite(xy).all():
-                raise ValueError("homography: maps LCoS corners to infinity")
-            if np.any(corners[:, 2] <= 0):
-                raise ValueError("homography: maps LCoS corners behind the sensor (w <= 0)")
-            sw, sh = self.sensor_size
-            if (
-                min(xy[:, 0].max(), xy[:, 1].max()) <= 0
-                or xy[:, 0].min() >= sw
-                or (xy[:, 1].min() >= sh)
-            ):
-                raise ValueError(
-                    f"lcos_cells: the {w}x{hh} LCoS grid, through the homography, misses the "
-                    f"{sw}x{sh} sensor entirely"
-                )
-        return self
+#: A rig as files store it: :data:`stages.rig.RIG_MODEL`, the model of
+#: :class:`~stages.rig.RigParams`'s own table of fields (one schema of the rig).
+Rig = RIG_MODEL
+#: Rig fields that a caller completes (a rig file's or profile's ``[params]``): each in
+#: its range; the relations are checked on the whole rig (:class:`~stages.rig.RigParams`).
+RigFields = RIG_FIELDS_MODEL
 
 
 class InputRecord(_Open):
@@ -148,7 +110,7 @@ class _FileMeta(_Open):
     scene: Str | None = None
     motion: Str | None = None
     seed: Int | None = None
-    radiance_scale: Positive | None = None
+    radiance_scale: Scale | None = None
     units: Any = None
 
 
@@ -175,48 +137,51 @@ class TruthTrajectory(BaseModel):
         return self
 
 
-#: Whole numbers on the subframe clock, one per subframe at most (indices or counts).
+#: Indices on the subframe clock, one per subframe at most.
+SubframeIndices = Annotated[
+    list[Annotated[int, Field(strict=True, ge=0, lt=MAX_SUBFRAMES)]],
+    Field(max_length=MAX_SUBFRAMES),
+]
+#: Subframes summed in each measuring image: one at least.
 SubframeCounts = Annotated[
-    list[Annotated[int, Field(strict=True, ge=0, le=MAX_SUBFRAMES)]],
+    list[Annotated[int, Field(strict=True, ge=1, le=MAX_SUBFRAMES)]],
+    Field(max_length=MAX_SUBFRAMES),
+]
+#: Each measuring image's ``[start, end)``, seconds.
+BinTimes = Annotated[
+    list[Annotated[list[Float], Field(min_length=2, max_length=2)]],
     Field(max_length=MAX_SUBFRAMES),
 ]
 
 
 class CaptureMeta(_FileMeta):
-    """A capture's metadata (:mod:`stages.formats.capture`)."""
+    """A capture's metadata (:mod:`stages.formats.capture`); the relations between its
+    fields are :func:`stages.formats.relations.check_capture`'s."""
 
     kind: Literal["capture"]
     rig: Rig
     method: Literal["vet", "long", "short", "adaptive-attenuation"] = "vet"
     units: dict[str, Str] | None = None
-    measure_times: (
-        Annotated[
-            list[Annotated[list[Float], Field(min_length=2, max_length=2)]],
-            Field(max_length=MAX_SUBFRAMES),
-        ]
-        | None
-    ) = None
+    # The exposure's whole length (the frame; one subframe for a short exposure).
+    integration_s: Positive | None = None
+    # Whether closed pixels leak (a VET capture's LCoS) or not (a plain exposure).
+    leakage_applies: bool | None = None
+    measure_times: BinTimes | None = None
     truth_trajectory: TruthTrajectory | None = None
     # Measuring subframes the rig dropped (indices on the subframe clock; the stream
     # holds the others, each with its own time bin).
-    measure_dropped: SubframeCounts | None = None
+    measure_dropped: SubframeIndices | None = None
     # Subframes summed in each measuring image (time bins of a stream).
     measure_subframes: SubframeCounts | None = None
     rig_profile: Str | None = None
 
     @model_validator(mode="after")
-    def _bins(self) -> CaptureMeta:
+    def _relations(self) -> CaptureMeta:
         if self.units is not None:
             for layer, unit in (("I", "DN"), ("T", "s")):
                 if layer in self.units and self.units[layer] != unit:
                     raise ValueError(f"units.{layer}: {self.units[layer]!r}; allowed {unit!r}")
-        top = self.rig.frame_s * (1 + 1e-6)
-        for b, (start, end) in enumerate(self.measure_times or []):
-            if not 0 <= start < end <= top:
-                raise ValueError(
-                    f"measure_times.{b}: [{start}, {end}] s; allowed 0 <= start < end <= "
-                    f"frame_s ({self.rig.frame_s} s)"
-                )
+        relations.check_capture(self)
         return self
 
 
@@ -248,13 +213,25 @@ class CalibrationMeta(_FileMeta):
     homography_fit: dict[str, Any] = {}
     rig: Rig | None = None
     provenance: dict[str, Any] = {}
-    # The parts of a real rig found (stages.calibrate.parts): rig fields, checked as such.
-    parts: Rig | None = None
+    # The parts of a real rig found (stages.calibrate.parts): rig fields, checked as such
+    # on the calibration's rig (its sensor, LCoS and clock).
+    parts: dict[str, Any] | None = None
     # Medians are NaN where nothing could be measured (calibration_changes skips them).
     leakage_median: float | None = None
     dark_current_median_e_s: float | None = None
     bias_median_dn: float | None = None
     gain_ratio_median: float | None = None
+
+    @model_validator(mode="after")
+    def _parts(self) -> CalibrationMeta:
+        if self.parts:
+            base = self.rig.model_dump() if self.rig is not None else {}
+            grid = {"sensor_size": self.sensor_size, "lcos_cells": self.lcos_cells}
+            try:
+                Rig.model_validate({**base, **grid, **self.parts})
+            except ValidationError as exc:
+                raise ValueError(f"parts.{validation_message(exc)}") from None
+        return self
 
 
 META_MODELS: dict[str, type[_FileMeta]] = {
@@ -289,6 +266,7 @@ class CameraSection(_Open):
 class RigFile(_Open):
     """A rig TOML file (:mod:`stages.devices.rigs`)."""
 
+    # A rig file describes its hardware whole: its [params] hold their relations.
     params: Rig = Rig()
     lcos: LcosSection
     measurement_camera: CameraSection
@@ -337,19 +315,7 @@ class Manifest(_Open):
 # --- checking ----------------------------------------------------------------------------
 
 
-def _message(exc: ValidationError) -> str:
-    """The first error as ``field: what is wrong (got value)``."""
-    err = exc.errors(include_url=False)[0]
-    loc = ".".join(str(p) for p in err["loc"])
-    msg = str(err["msg"])
-    if msg.startswith("Value error, "):
-        return f"{loc}.{msg[13:]}" if loc else msg[13:]
-    msg = msg.replace("Input should be", "must be").replace("Field required", "is missing")
-    got = err.get("input")
-    shown = (
-        "" if err["type"] == "missing" or isinstance(got, (dict, list)) else f" (got {got!r:.60})"
-    )
-    return f"{loc or 'metadata'}: {msg}{shown}"
+_message = validation_message
 
 
 def validate(model: type[BaseModel], data: Any, what: str) -> BaseModel:
@@ -383,11 +349,12 @@ def check_layers(
 ) -> None:
     """Cross-check a vet file's pixel layers ``(H, W, C)`` with its (valid) metadata.
 
-    A capture's I channels against ``channels`` and its measuring layers against
-    ``measure_times``; an HDR image's mask codes against ``mask_codes``; a motion
-    field's velocities against :data:`MAX_SPEED_IMAGES_PER_S`; a capture's measuring
-    layers share one size. (Layer sizes against the declared sensor and measurement
-    camera sizes are checked by the container readers, before the pixels are read:
+    Every layer's channel count; the image's channels against ``channels``; a capture's
+    layers' channels, and its measuring layers (``M00``, ``M01``... in order, of one size)
+    against ``measure_times`` (:func:`_check_measuring_layers`); a motion field's
+    velocities against :data:`MAX_SPEED_IMAGES_PER_S`; an HDR image's mask codes against
+    ``mask_codes``. (Layer sizes against the declared sensor and measurement camera sizes
+    are checked by the container readers, before the pixels are read:
     :class:`stages.formats.container.SizeCheck`.)
 
     Raises
@@ -408,47 +375,80 @@ def check_layers(
             f"{what}: channels: {declared} but layer {base or 'image'!r} holds {channels[base]}"
         )
     if kind == "capture":
-        bins = [k for k in layers if len(k) >= 3 and k[0] == "M" and k[1:].isdigit()]
-        image = channels.get("I")
-        wanted = {"T": ["Y"], "A": ["Y"], "truth_motion": ["u", "v"], "truth_layers": ["Y"]}
-        wanted.update({k: image for k in (*bins, "truth")})
-        for name, chans in wanted.items():
-            if name in channels and image is not None and list(channels[name]) != list(chans):
-                raise FormatError(
-                    f"{what}: layer {name!r} has channels {channels[name]}; allowed {chans}"
-                )
-        sizes = sorted({layers[k].shape[:2] for k in bins})
-        if len(sizes) > 1:
-            raise FormatError(
-                f"{what}: measuring layers have different sizes "
-                f"{', '.join(f'{w}x{h}' for h, w in sizes)}; allowed one"
-            )
-        times = meta.get("measure_times")
-        if bins and (times is None or len(times) != len(bins)):
-            n = "none" if times is None else len(times)
-            raise FormatError(
-                f"{what}: measure_times: {n} time bins for {len(bins)} measuring layers; "
-                "allowed one [start, end] per layer"
-            )
+        bins = measuring_layers(layers)
+        _check_capture_channels(channels, bins, what)
+        _check_measuring_layers(meta, layers, bins, what)
     if kind == "motion" and "motion" in layers:
-        field = layers["motion"]
-        top = MAX_SPEED_IMAGES_PER_S * max(field.shape[:2])
-        speed = float(np.abs(field).max()) if field.size else 0.0
-        if not np.isfinite(speed):
-            raise FormatError(f"{what}: motion: the field holds non-finite velocities")
-        if speed > top:
-            raise FormatError(
-                f"{what}: motion: velocities up to {speed:.3g} px/s; allowed at most "
-                f"{top:g} px/s ({MAX_SPEED_IMAGES_PER_S} image sizes per second)"
-            )
+        _check_motion(layers["motion"], what)
     if kind == "hdr" and "mask" in layers:
-        codes = meta.get("mask_codes")
-        allowed = {int(k) for k in codes} if codes else {0, 1, 2, 3}
-        found = np.unique(layers["mask"]).tolist()
-        bad = [v for v in found if not (np.isfinite(v) and v == int(v) and int(v) in allowed)]
-        if bad:
-            shown = [int(v) if np.isfinite(v) and v == int(v) else v for v in bad[:5]]
-            raise FormatError(f"{what}: mask: codes {shown} not in mask_codes {sorted(allowed)}")
+        _check_mask(meta.get("mask_codes"), layers["mask"], what)
+
+
+def measuring_layers(layers: dict[str, np.ndarray]) -> list[str]:
+    """A capture's measuring layers (``M`` and digits), in the order of their numbers."""
+    names = [k for k in layers if len(k) >= 3 and k[0] == "M" and k[1:].isdigit()]
+    return sorted(names, key=lambda k: int(k[1:]))
+
+
+def _check_capture_channels(channels: dict[str, list[str]], bins: list[str], what: str) -> None:
+    image = channels.get("I")
+    if image is None:
+        return
+    wanted = {"T": ["Y"], "A": ["Y"], "truth_motion": ["u", "v"], "truth_layers": ["Y"]}
+    wanted.update({k: image for k in (*bins, "truth")})
+    for name, chans in wanted.items():
+        if name in channels and list(channels[name]) != list(chans):
+            raise FormatError(
+                f"{what}: layer {name!r} has channels {channels[name]}; allowed {chans}"
+            )
+
+
+def _check_measuring_layers(
+    meta: dict[str, Any], layers: dict[str, np.ndarray], bins: list[str], what: str
+) -> None:
+    """The measuring layers are ``M00`` to ``M{B-1}`` (two digits at least), of one size,
+    one per ``measure_times`` bin."""
+    expected = [f"M{b:02d}" for b in range(len(bins))]
+    if bins != expected:
+        odd = next(n for n, e in zip(bins, expected, strict=True) if n != e)
+        raise FormatError(
+            f"{what}: measuring layer {odd!r} out of sequence; allowed M00 to "
+            f"{expected[-1]}, one per time bin"
+        )
+    sizes = sorted({layers[k].shape[:2] for k in bins})
+    if len(sizes) > 1:
+        raise FormatError(
+            f"{what}: measuring layers have different sizes "
+            f"{', '.join(f'{w}x{h}' for h, w in sizes)}; allowed one"
+        )
+    times = meta.get("measure_times")
+    if (bins or times) and (times is None or len(times) != len(bins)):
+        n = "none" if times is None else len(times)
+        raise FormatError(
+            f"{what}: measure_times: {n} time bins for {len(bins)} measuring layers; "
+            "allowed one [start, end] per layer"
+        )
+
+
+def _check_motion(field: np.ndarray, what: str) -> None:
+    top = MAX_SPEED_IMAGES_PER_S * max(field.shape[:2])
+    speed = float(np.abs(field).max()) if field.size else 0.0
+    if not np.isfinite(speed):
+        raise FormatError(f"{what}: motion: the field holds non-finite velocities")
+    if speed > top:
+        raise FormatError(
+            f"{what}: motion: velocities up to {speed:.3g} px/s; allowed at most "
+            f"{top:g} px/s ({MAX_SPEED_IMAGES_PER_S} image sizes per second)"
+        )
+
+
+def _check_mask(codes: dict[str, str] | None, mask: np.ndarray, what: str) -> None:
+    allowed = {int(k) for k in codes} if codes else {0, 1, 2, 3}
+    found = np.unique(mask).tolist()
+    bad = [v for v in found if not (np.isfinite(v) and v == int(v) and int(v) in allowed)]
+    if bad:
+        shown = [int(v) if np.isfinite(v) and v == int(v) else v for v in bad[:5]]
+        raise FormatError(f"{what}: mask: codes {shown} not in mask_codes {sorted(allowed)}")
 
 
 def check_rig_file(data: dict[str, Any], what: str) -> RigFile:
@@ -456,12 +456,14 @@ def check_rig_file(data: dict[str, Any], what: str) -> RigFile:
     return validate(RigFile, data, what)  # type: ignore[return-value]
 
 
-def check_rig_params(data: dict[str, Any], what: str) -> dict[str, Any]:
-    """The ``[params]`` table of a parsed rig TOML file, validated as :class:`Rig`
-    (for readers that use only the parameters, such as a calibration folder's
-    ``rig.toml``); returns it as a plain dict for :meth:`RigParams.from_dict`."""
+def check_rig_params(data: dict[str, Any], what: str, whole: bool = True) -> dict[str, Any]:
+    """The ``[params]`` table of a parsed rig TOML file, validated as :data:`Rig` (a
+    whole rig: a calibration folder's ``rig.toml``) or, not ``whole``, field by field as
+    :data:`RigFields` (a profile that the caller's sensor size completes: the relations
+    hold on the rig made of both); returns it as a plain dict for
+    :meth:`RigParams.from_dict`."""
     params = data.get("params", {})
-    validate(Rig, params, f"{what}: [params]")
+    validate(Rig if whole else RigFields, params, f"{what}: [params]")
     return dict(params)
 
 
