@@ -93,31 +93,16 @@ def read_exr_attributes(path: str | Path, names: set[str]) -> dict[str, bytes]:
         if len(head) < 8 or head[:4] != EXR_MAGIC:
             raise ValueError("not an OpenEXR file")
         consumed = 8
-
-        def cstring() -> bytes:
-            nonlocal consumed
-            out = bytearray()
-            while True:
-                c = f.read(1)
-                if not c:
-                    raise ValueError("truncated EXR header")
-                consumed += 1
-                if c == b"\0":
-                    return bytes(out)
-                out += c
-                if len(out) > 255:
-                    raise ValueError("malformed EXR header (attribute name too long)")
-
         while True:
-            name = cstring()
+            name = _cstring(f)
             if not name:
                 return found
-            cstring()  # attribute type
+            kind = _cstring(f)  # (the attribute's type)
             raw = f.read(4)
             if len(raw) < 4:
                 raise ValueError("truncated EXR header")
             (size,) = struct.unpack("<i", raw)
-            consumed += 4 + max(size, 0)
+            consumed += len(name) + len(kind) + 2 + 4 + max(size, 0)
             if size < 0 or consumed > MAX_HEADER_BYTES:
                 raise ValueError("malformed EXR header (attribute size)")
             if name in wanted:
@@ -127,6 +112,20 @@ def read_exr_attributes(path: str | Path, names: set[str]) -> dict[str, bytes]:
                 found[name.decode()] = value
             else:
                 f.seek(size, os.SEEK_CUR)
+
+
+def _cstring(f) -> bytes:
+    """A NUL-terminated name of at most 255 bytes from the header ``f`` (without the NUL)."""
+    out = bytearray()
+    while True:
+        c = f.read(1)
+        if not c:
+            raise ValueError("truncated EXR header")
+        if c == b"\0":
+            return bytes(out)
+        out += c
+        if len(out) > 255:
+            raise ValueError("malformed EXR header (attribute name too long)")
 
 
 def probe_kind(path: str | Path) -> str | None:
@@ -168,6 +167,8 @@ def _npz_kind(path: str | Path) -> str | None:
         if "__meta__.npy" not in zf.namelist():
             return None
         info = zf.getinfo("__meta__.npy")
+        if info.flag_bits & 0x1:  # (encrypted: the reader refuses it, naming the member)
+            return UNREADABLE
         if info.file_size > MAX_HEADER_BYTES:
             raise ValueError("metadata too large")
         with zf.open(info) as fp:

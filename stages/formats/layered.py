@@ -214,10 +214,11 @@ def _npz_table(zf: zipfile.ZipFile, info: zipfile.ZipInfo, what: str) -> Any:
 def read_npz(path: Path, what: str | None = None, skip: frozenset[str] = frozenset()) -> Layered:
     """Read a vet npz, checking every member's declared shape before inflating any.
 
-    Order: member names and zip methods; each member's .npy header (no pickles; declared
-    bytes equal to the zip's uncompressed size); the metadata and channel tables
-    (size- and depth-limited JSON); each layer's shape against its channels and the sizes the
-    metadata declares (:class:`~stages.formats.container.SizeCheck`); the total against the input and
+    Order: member names (each once), zip methods and flags (no encryption); each member's
+    .npy header (no pickles; declared bytes equal to the zip's uncompressed size); the
+    metadata and channel tables (size- and depth-limited JSON); each layer's shape against
+    its channels and the sizes the metadata declares
+    (:class:`~stages.formats.container.SizeCheck`); the total against the input and
     compression-ratio limits of :mod:`stages.formats.limits`. Only then are layers read.
 
     Raises
@@ -232,59 +233,100 @@ def read_npz(path: Path, what: str | None = None, skip: frozenset[str] = frozens
     except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
         raise FormatError(f"{what}: not a valid .npz file ({exc})") from None
     with zf:
-        infos = zf.infolist()
-        if len(infos) > MAX_CHANNELS:
-            raise FormatError(f"{what}: .npz holds {len(infos)} members, over {MAX_CHANNELS}")
-        tables: dict[str, zipfile.ZipInfo] = {}
-        layers: dict[str, tuple[zipfile.ZipInfo, tuple, np.dtype]] = {}
-        for info in infos:
-            m = info.filename
-            if not m.endswith(".npy") or not (m in _NPZ_TABLES or m.startswith("layer:")):
-                raise FormatError(f"{what}: unexpected member {m!r} in .npz")
-            if info.compress_type not in _NPZ_METHODS:
-                raise FormatError(
-                    f"{what}: member {m!r} uses zip method {info.compress_type}; "
-                    "only stored and deflate are read"
-                )
-            if m in _NPZ_TABLES:
-                tables[m] = info
-            else:
-                shape, dtype, _ = _npz_member_header(zf, info, what)
-                layers[m[len("layer:") : -len(".npy")]] = (info, shape, dtype)
-        if len(tables) != len(_NPZ_TABLES):
-            raise FormatError(f"{what}: .npz is not a vet file (no __meta__ / __channels__)")
+        tables, members = _npz_members(zf, what)
         meta = _parse_meta(tables["__meta__.npy"], what, zf)
         schema.check_meta(meta, what)
         channels = _npz_table(zf, tables["__channels__.npy"], what)
         if not isinstance(channels, dict):
             raise FormatError(f"{what}: corrupt channel table (not a JSON object)")
-        sizes = SizeCheck(meta, what)
-        total = 0
-        for name, (_, shape, dtype) in layers.items():
-            chans = channels.get(name)
-            if len(shape) != 3 or not isinstance(chans, list) or len(chans) != shape[2]:
-                raise FormatError(f"{what}: layer {name!r} has shape {shape} but channels {chans}")
-            if dtype.kind not in "fiu" or dtype.itemsize > 8:
-                raise FormatError(f"{what}: layer {name!r} is not real numbers ({dtype})")
-            sizes(name, shape[:2])
-            kept = dtype in COMPACT_DTYPES
-            total += math.prod(shape) * (dtype.itemsize if kept else max(dtype.itemsize, 4))
-        limits.check_declared(total, on_disk, what)
-        layers = {name: v for name, v in layers.items() if name not in skip}
-        data = Layered(meta=meta)
-        # Each member inflated into its place (the stream's into one stack).
-        data.layers = empty_layers(
-            {
-                name: (shape, dtype if dtype in COMPACT_DTYPES else np.dtype(np.float32))
-                for name, (_, shape, dtype) in layers.items()
-            }
-        )
-        infos_in_order = [info for info, _, _ in layers.values()]
-        for name, arr in zip(layers, _npz_arrays(path, zf, infos_in_order, what), strict=True):
-            if arr.shape != data.layers[name].shape:
-                raise FormatError(f"{what}: member {name!r} does not hold the shape it declares")
-            np.copyto(data.layers[name], arr, casting="unsafe")
-            data.channels[name] = [str(c) for c in channels[name]]
+        _check_npz_layers(members, channels, meta, on_disk, what)
+        kept = {name: member for name, member in members.items() if name not in skip}
+        return _inflate_npz(path, zf, kept, channels, meta, what)
+
+
+#: One layer member of an npz: its zip entry, declared shape and type.
+_Member = tuple[zipfile.ZipInfo, tuple, np.dtype]
+
+
+def _npz_members(
+    zf: zipfile.ZipFile, what: str
+) -> tuple[dict[str, zipfile.ZipInfo], dict[str, _Member]]:
+    """The zip's tables and layer members (headers read, not their data), each name once,
+    stored or deflated, not encrypted."""
+    infos = zf.infolist()
+    if len(infos) > MAX_CHANNELS:
+        raise FormatError(f"{what}: .npz holds {len(infos)} members, over {MAX_CHANNELS}")
+    tables: dict[str, zipfile.ZipInfo] = {}
+    layers: dict[str, _Member] = {}
+    seen: set[str] = set()
+    for info in infos:
+        m = info.filename
+        if not m.endswith(".npy") or not (m in _NPZ_TABLES or m.startswith("layer:")):
+            raise FormatError(f"{what}: unexpected member {m!r} in .npz")
+        if m in seen:
+            raise FormatError(
+                f"{what}: member {m!r} is in the .npz twice; refusing to choose one of them"
+            )
+        seen.add(m)
+        if info.flag_bits & 0x1:
+            raise FormatError(f"{what}: member {m!r} is encrypted; vet reads no encrypted files")
+        if info.compress_type not in _NPZ_METHODS:
+            raise FormatError(
+                f"{what}: member {m!r} uses zip method {info.compress_type}; "
+                "only stored and deflate are read"
+            )
+        if m in _NPZ_TABLES:
+            tables[m] = info
+        else:
+            shape, dtype, _ = _npz_member_header(zf, info, what)
+            layers[m[len("layer:") : -len(".npy")]] = (info, shape, dtype)
+    if len(tables) != len(_NPZ_TABLES):
+        raise FormatError(f"{what}: .npz is not a vet file (no __meta__ / __channels__)")
+    return tables, layers
+
+
+def _check_npz_layers(
+    layers: dict[str, _Member], channels: dict, meta: dict[str, Any], on_disk: int, what: str
+) -> None:
+    """Each layer's shape against its channels and the declared sizes; the pixel bytes
+    of all against the limits."""
+    sizes = SizeCheck(meta, what)
+    total = 0
+    for name, (_, shape, dtype) in layers.items():
+        chans = channels.get(name)
+        if len(shape) != 3 or not isinstance(chans, list) or len(chans) != shape[2]:
+            raise FormatError(f"{what}: layer {name!r} has shape {shape} but channels {chans}")
+        if dtype.kind not in "fiu" or dtype.itemsize > 8:
+            raise FormatError(f"{what}: layer {name!r} is not real numbers ({dtype})")
+        sizes(name, shape[:2])
+        kept = dtype in COMPACT_DTYPES
+        total += math.prod(shape) * (dtype.itemsize if kept else max(dtype.itemsize, 4))
+    limits.check_declared(total, on_disk, what)
+
+
+def _inflate_npz(
+    path: Path,
+    zf: zipfile.ZipFile,
+    layers: dict[str, _Member],
+    channels: dict,
+    meta: dict[str, Any],
+    what: str,
+) -> Layered:
+    """The checked layers read, each member inflated into its place (the stream's into
+    one stack: :func:`~stages.formats.container.empty_layers`)."""
+    data = Layered(meta=meta)
+    data.layers = empty_layers(
+        {
+            name: (shape, dtype if dtype in COMPACT_DTYPES else np.dtype(np.float32))
+            for name, (_, shape, dtype) in layers.items()
+        }
+    )
+    infos_in_order = [info for info, _, _ in layers.values()]
+    for name, arr in zip(layers, _npz_arrays(path, zf, infos_in_order, what), strict=True):
+        if arr.shape != data.layers[name].shape:
+            raise FormatError(f"{what}: member {name!r} does not hold the shape it declares")
+        np.copyto(data.layers[name], arr, casting="unsafe")
+        data.channels[name] = [str(c) for c in channels[name]]
     return data
 
 
