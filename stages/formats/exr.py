@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError, OutputError
+from ..rig import MAX_SENSOR_SIDE
 from . import limits, schema
 from .container import (
     COMPACT_DTYPES,
@@ -261,6 +262,8 @@ class _Part:
             raise FormatError(
                 f"{what}: image{where} has {self.nch} channels, over the limit of {MAX_CHANNELS}"
             )
+        self.origin = (int(spec.x), int(spec.y))
+        _check_window(spec, self.origin, f"{what}: image{where}")
         kinds = [str(t) for t in spec.channelformats] or [str(spec.format)] * self.nch
         self.half = [keep_half and k == "half" for k in kinds]
         self.nbytes = self.w * self.h * sum(2 if hf else 4 for hf in self.half)
@@ -342,6 +345,18 @@ class _Part:
         return np.asarray(pixels, dtype=np.float16 if fmt == "half" else np.float32)
 
 
+def _check_window(spec: Any, origin: tuple[int, int], what: str) -> None:
+    """A flat image (no depth, not deep) whose data window starts within
+    :data:`~stages.rig.MAX_SENSOR_SIDE` pixels of the origin (its size is the limits')."""
+    if getattr(spec, "deep", False) or int(spec.depth) != 1 or int(spec.z) != 0:
+        raise FormatError(f"{what}: is a deep or volume image; vet reads flat images only")
+    if max(abs(origin[0]), abs(origin[1])) > MAX_SENSOR_SIDE:
+        raise FormatError(
+            f"{what}: data window at ({origin[0]}, {origin[1]}); allowed within "
+            f"{MAX_SENSOR_SIDE} pixels of the origin"
+        )
+
+
 def _parts(inp: Any, what: str) -> list[_Part]:
     """Every part's header, at most :data:`MAX_PARTS`."""
     heads = [_Part(inp, 0, what, True)]
@@ -379,6 +394,12 @@ def _read_exr(inp: Any, path: str | Path, what: str, skip: frozenset[str] = froz
     if text:
         meta.update(parse_meta(text, what))
         schema.check_meta(meta, what)
+    for head in heads if meta.get("kind") else ():
+        if head.origin != (0, 0):
+            where = f" (part {head.index})" if head.index else ""
+            raise FormatError(
+                f"{what}: data window{where} at {head.origin}; a vet file's layers lie at (0, 0)"
+            )
     check = SizeCheck(meta, what)
     grouped: list[dict[str, list[tuple[str, int]]]] = []
     seen: set[str] = set()
