@@ -272,7 +272,28 @@ class Capture:
         return float(s) if s else None
 
     def validate(self, what: str = "capture") -> None:
-        """Check shapes and values; raise :class:`FormatError` with one sentence."""
+        """Check shapes and values, and that every pixel saw light; raise
+        :class:`FormatError` with one sentence."""
+        self._check_images(what)
+        self._check_exposure(what)
+        if self.measure is not None:
+            self._check_measuring(what)
+        if self.truth_layers is not None:
+            tt = self.meta.get("truth_trajectory")
+            n_layers = len(tt.get("disp", [])) if isinstance(tt, dict) else 0
+            if self.truth_layers.shape != self.T.shape or not n_layers:
+                raise FormatError(f"{what}: truth_layers without a matching truth_trajectory")
+            if int(self.truth_layers.min()) < 0 or int(self.truth_layers.max()) >= n_layers:
+                raise FormatError(f"{what}: truth_layers names a layer truth_trajectory lacks")
+        if self.cell_leakage is not None:
+            if self.cell_leakage.shape != self.T.shape:
+                raise FormatError(f"{what}: cell_leakage does not match T's size")
+            leak = self.cell_leakage
+            if not (np.isfinite(leak).all() and (leak >= 0).all() and (leak < 1).all()):
+                raise FormatError(f"{what}: cell_leakage must hold transmittances in [0, 1)")
+
+    def _check_images(self, what: str) -> None:
+        """I (H, W, C) and T (H, W), finite, T within the frame."""
         if self.I.ndim != 3 or self.I.shape[2] != len(self.channels) or self.I.shape[2] == 0:
             raise FormatError(f"{what}: I must be (H, W, C) with C = {len(self.channels)}")
         if self.T.shape != self.I.shape[:2]:
@@ -287,33 +308,37 @@ class Capture:
         tf = self.rig.frame_s
         if self.T.size and (float(self.T.min()) < 0 or float(self.T.max()) > tf * (1 + 1e-6)):
             raise FormatError(f"{what}: T outside [0, {tf}] s (the frame length)")
-        if self.measure is not None:
-            grids = (self.I.shape, (*self.rig.measure_shape, self.I.shape[2]))
-            if self.measure.ndim != 4 or self.measure.shape[1:] not in grids:
-                raise FormatError(
-                    f"{what}: measuring images match neither I's size nor the measurement camera's"
-                )
-            if self.measure_times is None or self.measure_times.shape != (self.measure.shape[0], 2):
-                raise FormatError(f"{what}: measuring images lack their time bins")
-            if self.measure.dtype.kind == "f" and not all(
-                np.isfinite(m).all() for m in self.measure
-            ):
-                raise FormatError(f"{what}: measuring images hold NaN or infinite values")
-        if self.truth_layers is not None:
-            tt = self.meta.get("truth_trajectory")
-            n_layers = len(tt.get("disp", [])) if isinstance(tt, dict) else 0
-            if self.truth_layers.shape != self.T.shape or not n_layers:
-                raise FormatError(f"{what}: truth_layers without a matching truth_trajectory")
-            if int(self.truth_layers.min()) < 0 or int(self.truth_layers.max()) >= n_layers:
-                raise FormatError(f"{what}: truth_layers names a layer truth_trajectory lacks")
-        if self.transmittance is not None and self.transmittance.shape != self.T.shape:
-            raise FormatError(f"{what}: transmittance does not match T's size")
-        if self.cell_leakage is not None:
-            if self.cell_leakage.shape != self.T.shape:
-                raise FormatError(f"{what}: cell_leakage does not match T's size")
-            leak = self.cell_leakage
-            if not (np.isfinite(leak).all() and (leak >= 0).all() and (leak < 1).all()):
-                raise FormatError(f"{what}: cell_leakage must hold transmittances in [0, 1)")
+
+    def _check_exposure(self, what: str) -> None:
+        """Every pixel was exposed: T > 0 where no light leaks past a closed cell (leakage
+        0, or a plain exposure's), a fixed transmittance A in (0, 1]."""
+        if self.transmittance is not None:
+            a = self.transmittance
+            if a.shape != self.T.shape:
+                raise FormatError(f"{what}: transmittance does not match T's size")
+            if not (np.isfinite(a).all() and (a > 0).all() and (a <= 1).all()):
+                raise FormatError(f"{what}: transmittance A must hold values in (0, 1]")
+        leaks = self.meta.get("leakage_applies", True) is not False and self.rig.leakage > 0
+        dark = int(np.count_nonzero(self.T <= 0)) if not leaks else 0
+        if dark:
+            raise FormatError(
+                f"{what}: T is 0 s at {dark} of {self.T.size} pixels and no light leaks past "
+                f"a closed cell (rig.leakage = {self.rig.leakage:g}): those pixels saw no light; "
+                "allowed T > 0"
+            )
+
+    def _check_measuring(self, what: str) -> None:
+        """The measuring images: (B, H, W, C) of I's or the measurement camera's size,
+        finite, one time bin each."""
+        grids = (self.I.shape, (*self.rig.measure_shape, self.I.shape[2]))
+        if self.measure.ndim != 4 or self.measure.shape[1:] not in grids:
+            raise FormatError(
+                f"{what}: measuring images match neither I's size nor the measurement camera's"
+            )
+        if self.measure_times is None or self.measure_times.shape != (self.measure.shape[0], 2):
+            raise FormatError(f"{what}: measuring images lack their time bins")
+        if self.measure.dtype.kind == "f" and not all(np.isfinite(m).all() for m in self.measure):
+            raise FormatError(f"{what}: measuring images hold NaN or infinite values")
 
     # --- conversion to/from the layered container ---------------------------------
     def to_layered(self) -> Layered:
