@@ -312,6 +312,12 @@ def deblur(
     if fuse_still is not None and method != "vet":
         raise InputError("choosing what still pixels take applies to the vet method only")
     motion_init = motion_init or ("layers" if method == "vet" else "farneback")
+    n_measure = 0 if cap.measure is None else cap.measure.shape[0]
+    if n_measure < 2 and motion_init not in ("truth", "zero"):  # (the estimates need two)
+        raise InputError(
+            f"capture has {n_measure or 'no'} measuring image{'s' * (n_measure != 1)}; motion "
+            "cannot be estimated from fewer than two (--motion-init zero assumes none)"
+        )
     if (
         client_soon is None
         and method == "vet"
