@@ -1,6 +1,9 @@
-"""Crafted hostile files for the tests and ``make bench``: decompression bombs.
+"""Crafted hostile files for the tests and ``make bench``: files vet's writers refuse to
+make, and decompression bombs.
 
-:func:`write_npz_bomb` writes a valid vet-looking ``.npz`` whose ``layer:I`` member
+:func:`write_unchecked` writes a vet file as :func:`stages.formats.layered.write_layered`
+does, but without its check that every value is finite (a reader's test needs NaN in T,
+in a measuring image, in a motion field). :func:`write_npz_bomb` writes a valid vet-looking ``.npz`` whose ``layer:I`` member
 inflates to gigabytes of zeros from about a thousandth of that on disk. The deflate
 stream is built from one compressed block repeated (each block ends with a full flush,
 so blocks are independent and identical), and the CRC-32 of the zeros is combined
@@ -20,6 +23,17 @@ from pathlib import Path
 import numpy as np
 
 _BLOCK = 1 << 22  # zeros per repeated deflate block
+
+
+def write_unchecked(path: str | Path, data) -> None:
+    """Write the Layered ``data`` at ``path`` (EXR or npz by extension) as
+    ``write_layered`` does, non-finite values and all."""
+    from stages.formats.exr import write_exr
+    from stages.formats.layered import write_npz
+
+    path = Path(path)
+    data.meta["channel_order"] = {k: list(v) for k, v in data.channels.items()}
+    (write_exr if path.suffix.lower() == ".exr" else write_npz)(path, data)
 
 
 def _gf2_times(mat: list[int], vec: int) -> int:

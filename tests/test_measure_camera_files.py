@@ -18,6 +18,7 @@ from stages.motion import parse_motion
 from stages.optics import rig_profile
 from stages.scenes import load_scene
 from stages.simulate import simulate
+from tests.hostile import write_unchecked
 
 #: Measurement pixel -> VET pixel: the 40x30 camera sees the whole 48x40 frame.
 HOM = [[1.2, 0.0, 0.0], [0.0, 40 / 30, 0.0], [0.0, 0.0, 1.0]]
@@ -246,6 +247,6 @@ def test_non_finite_measuring_images_are_refused_in_one_line(tmp_path, captures,
         data = _layers(captures[4])
         data.layers["M01"][3, 5, 0] = value
         path = tmp_path / f"nan.{ext}"
-        write_layered(path, data)
+        write_unchecked(path, data)  # (write_layered refuses to write it)
         r = run_cli("hdr-static", path, "-o", tmp_path / "h.exr")
         assert "measuring images hold NaN or infinite values" in one_error_line(r, "hdr-static")

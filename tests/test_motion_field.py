@@ -80,10 +80,12 @@ def test_simulate_refuses_a_field_that_does_not_fit_before_rendering(tmp_path):
 
 def test_field_errors_are_one_line_exit_1(tmp_path):
     from stages.formats.layered import Layered, write_layered
+    from tests.hostile import write_unchecked
 
-    bad = np.zeros((8, 8, 2), np.float32)
-    bad[3, 3, 0] = np.nan
-    write_motion(str(tmp_path / "nan.exr"), bad)
+    bad = Layered(meta={"kind": "motion", "units": "px/s"})
+    bad.add("motion", np.zeros((8, 8, 2), np.float32), ["u", "v"])
+    bad.layers["motion"][3, 3, 0] = np.nan
+    write_unchecked(tmp_path / "nan.exr", bad)  # (write_motion refuses to write it)
     other = Layered(meta={"kind": "hdr"})
     other.add("", np.ones((8, 8, 1), np.float32), ["Y"])
     write_layered(tmp_path / "hdr.exr", other)

@@ -217,6 +217,40 @@ class SizeCheck:
         )
 
 
+#: Kinds of file whose every pixel must be finite (calibrations mark unmeasured cells NaN).
+FINITE_KINDS = ("capture", "hdr", "motion")
+
+
+def count_nonfinite(a: np.ndarray, block: int = 1 << 22) -> int:
+    """How many values of ``a`` are NaN or infinite (0 for integers), counted a block of
+    rows at a time (no boolean copy of a large image)."""
+    if a.dtype.kind not in "fc" or a.size == 0:
+        return 0
+    rows = a.reshape(a.shape[0], -1) if a.ndim > 1 else a.reshape(-1, 1)
+    step = max(1, block // max(rows.shape[1], 1))
+    return sum(
+        int(rows.shape[1] * len(part) - np.count_nonzero(np.isfinite(part)))
+        for part in (rows[i : i + step] for i in range(0, rows.shape[0], step))
+    )
+
+
+def require_finite(data: Layered, what: str) -> None:
+    """Refuse a file of :data:`FINITE_KINDS` any of whose layers holds a NaN or an
+    infinity: :class:`~stages.errors.OutputError` naming the layer and the count (the
+    one check of every data output, made before anything is written)."""
+    from ..errors import OutputError
+
+    if data.meta.get("kind") not in FINITE_KINDS:
+        return
+    for name, layer in data.layers.items():
+        bad = count_nonfinite(layer)
+        if bad:
+            raise OutputError(
+                f"{what}: layer {name or 'image'!r} holds {bad} NaN or infinite values of "
+                f"{layer.size}; every value of an output must be finite (nothing written)"
+            )
+
+
 def json_default(o: Any) -> Any:
     if isinstance(o, np.generic):
         return o.item()

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError
+from .container import count_nonfinite
 from .layered import Layered, read_layered, write_layered
 
 #: Mask codes written by hdr-static and deblur.
@@ -70,6 +71,12 @@ class HDRImage:
         mask = data.layers.get("mask")
         t = data.layers.get("T")
         radiance, channels, meta = data.layers[""], data.channels[""], dict(data.meta)
+        bad = count_nonfinite(radiance)
+        if bad:
+            raise FormatError(
+                f"{what}: {bad} of {radiance.size} radiance values are NaN or infinite; an HDR "
+                "image's radiance must be finite"
+            )
         if meta.pop("mono", False) is True and channels == ["R", "G", "B"]:
             radiance, channels = np.ascontiguousarray(radiance[:, :, :1]), ["Y"]
             meta["channels"] = channels

@@ -50,6 +50,7 @@ from .container import (
     empty_layers,
     json_default,
     parse_meta,
+    require_finite,
 )
 from .exr import EXR_WRITE_ROWS, MAX_PARTS, _oiio, meta_chunks, read_exr, read_oiio, write_exr
 from .inflate import ERRORS as INFLATE_ERRORS
@@ -397,8 +398,12 @@ def read_layered(path: str | Path, skip: frozenset[str] = frozenset()) -> Layere
 
 
 def write_layered(path: str | Path, data: Layered, fmt: str | None = None) -> None:
-    """Write atomically as EXR or npz (by extension, or ``fmt``); ``-`` writes stdout."""
+    """Write atomically as EXR or npz (by extension, or ``fmt``); ``-`` writes stdout.
+
+    A capture, HDR image or motion field with a NaN or infinite value anywhere is not
+    written (:func:`~stages.formats.container.require_finite`, OutputError)."""
     fmt = fmt or format_for_output(str(path))
+    require_finite(data, "standard output" if str(path) == "-" else str(path))
     data.meta["channel_order"] = {k: list(v) for k, v in data.channels.items()}
     with atomic_output(path, suffix="." + fmt) as tmp:
         if fmt == "exr":
