@@ -13,20 +13,28 @@ exit 3 "some captures failed") or *BAD* (anything else: a traceback, an internal
 another exit status, stray output); *warned* is ok or refused with a Python warning
 (numpy's overflow, say) that would reach stderr. Readers without a command of their own
 (calibration files, rig files) are called as functions: a one-line VetError is *refused*.
+An ok run whose output (a capture, HDR image or motion file) holds a NaN or an infinity
+is BAD, and so, in a campaign with a time limit (``make fuzz``: :data:`CASE_SECONDS`), is
+a run over it (a hang: an alarm ends it there).
 
-``python -m tests.fuzz [CASES_PER_KIND] [SEED]`` runs a longer campaign and prints counts.
+``python -m tests.fuzz [CASES_PER_KIND] [SEED]`` runs a longer campaign, then as many
+captures of :mod:`tests.fuzz_meta` (metadata relations, drawn by hypothesis), and prints
+counts.
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
 import copy
 import io
 import json
 import math
 import random
+import signal
 import sys
 import tempfile
+import threading
 import time
 import warnings
 import zipfile
@@ -40,6 +48,15 @@ HOSTILE = [
     -1e308, math.nan, math.inf, True, False, [], {}, [1], [1, 2], [1, 2, 3], [[1, 2], [3, 4]],
     [[0.0, 0.5]], {"a": 1}, 10**30, 2**31, -(2**63), 65537, 10**6, [10**6, 10**6],
 ]  # fmt: skip
+
+
+#: Longest one command may run on one case in ``make fuzz`` (seconds).
+CASE_SECONDS = 10.0
+
+
+class Hang(BaseException):
+    """Raised by the alarm in a run over its time (not an Exception: nothing catches it
+    on the way out)."""
 
 
 #: vet batch's exit status when some captures failed (each is listed, the rest are done).
@@ -224,9 +241,10 @@ def call_reader(fn: Callable[[], object]) -> str:
 class Campaign:
     """Seeds in a folder, counts per (reader, outcome), and the BAD cases."""
 
-    def __init__(self, folder: Path, seed: int = 0):
+    def __init__(self, folder: Path, seed: int = 0, limit_s: float | None = None):
         self.dir = folder
         self.seed = seed
+        self.limit_s = limit_s  # a run's time limit (None: none, as in the tests)
         self.counts: collections.Counter = collections.Counter()
         self.bad: list[str] = []
         self.warned: list[str] = []  # ok or refused, but with a Python warning on stderr
@@ -241,23 +259,52 @@ class Campaign:
         from vet_cli._common import State
         from vet_cli.main import cli
 
+        output = Path(args[args.index("-o") + 1]) if "-o" in args else None
+        if output is not None and output.is_file():
+            output.unlink()  # (an earlier case's output is not this one's)
         t0 = time.perf_counter()
         try:
-            with warnings.catch_warnings(record=True) as caught:
+            with warnings.catch_warnings(record=True) as caught, self._alarm():
                 warnings.simplefilter("always")
                 # --force: each case rewrites the same outputs; the readers are under test
                 force = ["--force"] if "-o" in args else []
                 result = CliRunner().invoke(cli, ["-q", *args, *force])
+        except Hang:
+            result = None
         finally:
             State.verbosity = 0  # -q counts down a process-wide level: reset it
-        self._timed(time.perf_counter() - t0, f"{reader} on {case}")
+        took = time.perf_counter() - t0
+        self._timed(took, f"{reader} on {case}")
+        if result is None or (self.limit_s is not None and took > self.limit_s):
+            self._count(reader, f"BAD: a hang ({took:.1f} s, over {self.limit_s} s)", case)
+            return
         outcome = classify(result, args[0], stdout_ok)
+        if outcome == "ok" and output is not None and output.suffix in (".exr", ".npz"):
+            outcome = _finite_output(output)
         if caught and not outcome.startswith("BAD"):  # a Python warning on stderr
             self.warned.append(
                 f"{reader} on {case}: {outcome}, {caught[0].category.__name__}: {caught[0].message}"
             )
             outcome = "warned"
         self._count(reader, outcome, case)
+
+    @contextlib.contextmanager
+    def _alarm(self):
+        """SIGALRM raises :class:`Hang` after :attr:`limit_s` (on the main thread)."""
+        if self.limit_s is None or threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def ring(signum, frame):
+            raise Hang()
+
+        old = signal.signal(signal.SIGALRM, ring)
+        signal.setitimer(signal.ITIMER_REAL, self.limit_s)
+        try:
+            yield
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, old)
 
     def fn(self, reader: str, fn: Callable[[], object], case: str) -> None:
         t0 = time.perf_counter()
@@ -334,6 +381,7 @@ class Campaign:
 
     def mutant(self, kind: str, rng: random.Random, name: str) -> Path:
         from stages.formats.layered import write_layered
+        from tests.hostile import write_unchecked
 
         # Scenes are images OpenImageIO reads: EXR only.
         data = copy.deepcopy(self.seeds[kind])  # write_layered adds to the metadata
@@ -346,9 +394,10 @@ class Campaign:
             write_layered(target, data)
         elif how == 1:
             # (Cut to another size: an npz, or the EXR of a measurement camera of its own
-            # size, which has parts of two sizes; other EXR cases keep their old sequence.)
+            # size, which has parts of two sizes; other EXR cases keep their old sequence.
+            # Written as is: write_layered refuses the non-finite values it may put in.)
             sizes = fmt == "npz" or kind == "capture_measure"
-            write_layered(target, mutate_layers(data, rng, sizes=sizes))
+            write_unchecked(target, mutate_layers(data, rng, sizes=sizes))
         else:
             write_layered(target, data)
             raw = target.read_bytes()
@@ -390,6 +439,16 @@ class Campaign:
         folder.mkdir(exist_ok=True)
         (folder / "rig.toml").write_bytes(path.read_bytes())
         self.fn("calibrate folder rig.toml", lambda: _folder_params(folder), case)
+
+
+def _finite_output(path: Path) -> str:
+    """``ok``, or BAD where the output at ``path`` holds a NaN or an infinity."""
+    from stages.formats.container import count_nonfinite
+    from stages.formats.layered import read_layered
+
+    data = read_layered(path)
+    bad = sum(count_nonfinite(layer) for layer in data.layers.values())
+    return "ok" if not bad else f"BAD: exit 0 with {bad} non-finite values in {path.name}"
 
 
 def make_seeds(folder: Path) -> dict:
@@ -453,17 +512,28 @@ def make_seeds(folder: Path) -> dict:
 
 
 def main(argv: list[str]) -> int:
+    from tests import fuzz_meta
+
     cases = int(argv[0]) if argv else 200
     seed = int(argv[1]) if len(argv) > 1 else 1
     with tempfile.TemporaryDirectory(prefix="vet-fuzz-") as tmp:
-        camp = Campaign(Path(tmp), seed)
+        camp = Campaign(Path(tmp), seed, limit_s=CASE_SECONDS)
         t0 = time.perf_counter()
         camp.run(cases, batch_cases=max(2, cases // 20))
         print(camp.summary())
         print(f"{sum(camp.counts.values())} runs in {time.perf_counter() - t0:.0f} s, seed {seed}")
         for line in camp.bad[:50]:
             print(line)
-    return 1 if camp.bad else 0
+        meta = Path(tmp) / "meta"
+        meta.mkdir()
+        t0 = time.perf_counter()
+        counts, bad = fuzz_meta.campaign(cases, seed, meta)
+        print(fuzz_meta.summary(counts))
+        runs = sum(n for (label, _), n in counts.items() if label != "slowest")
+        print(f"{runs} captures in {time.perf_counter() - t0:.0f} s, seed {seed}")
+        for line in bad[:50]:
+            print(line)
+    return 1 if camp.bad or bad else 0
 
 
 if __name__ == "__main__":
