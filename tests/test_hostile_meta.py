@@ -373,3 +373,23 @@ def test_no_output_is_written_with_a_non_finite_pixel(tmp_path, captures):
     with pytest.raises(OutputError, match="layer 'truth' holds 1 NaN"):
         write_capture(tmp_path / "c.npz", cap)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("layer", "words"),
+    [
+        ("I", "I holds values beyond +/-"),
+        ("M02", "measuring image M02 holds values beyond +/-"),
+        ("truth_motion", "truth_motion: velocities up to 1e+30 px/s"),
+    ],
+)
+def test_values_no_sensor_records_are_refused(tmp_path, captures, layer, words):
+    # Found by make fuzz: a measuring pixel of 1e30 DN (finite) overflowed float32 in
+    # deblur's robust weights (numpy's RuntimeWarning on stderr).
+    def change(meta, data):
+        data.layers[layer][3, 4, 0] = 1e30
+
+    path = _write(tmp_path, captures, "bins", change, "big.exr")
+    r = run("deblur", path, "-o", tmp_path / "d.exr", "--motion-init", "truth")
+    refused(r, "deblur", words)
+    assert not (tmp_path / "d.exr").exists()

@@ -132,6 +132,12 @@ def sum_bins_in_place(box: list[np.ndarray], edges: np.ndarray) -> np.ndarray | 
     return stream.view(np.float32).reshape(n_bins, *shape[1:])
 
 
+def dn_bound(rig: RigParams, n_subframes: int) -> float:
+    """The largest magnitude (DN) a sum of ``n_subframes`` readings may hold: no sensor
+    the rig's schema allows (ADC of 24 bits at most) records more, black level and all."""
+    return float(n_subframes) * (2.0**24 + rig.black_level_dn)
+
+
 #: Time bins the motion estimators read of a capture that keeps its whole stream.
 MOTION_BINS = 8
 
@@ -308,6 +314,12 @@ class Capture:
         tf = self.rig.frame_s
         if self.T.size and (float(self.T.min()) < 0 or float(self.T.max()) > tf * (1 + 1e-6)):
             raise FormatError(f"{what}: T outside [0, {tf}] s (the frame length)")
+        top = dn_bound(self.rig, 1)
+        if self.I.size and float(np.abs(self.I).max()) > top:
+            raise FormatError(
+                f"{what}: I holds values beyond +/-{top:g} DN; no sensor records more "
+                "(the rig's ADC has at most 24 bits)"
+            )
 
     def _check_exposure(self, what: str) -> None:
         """Every pixel was exposed: T > 0 where no light leaks past a closed cell (leakage
@@ -339,6 +351,14 @@ class Capture:
             raise FormatError(f"{what}: measuring images lack their time bins")
         if self.measure.dtype.kind == "f" and not all(np.isfinite(m).all() for m in self.measure):
             raise FormatError(f"{what}: measuring images hold NaN or infinite values")
+        if self.measure.dtype not in (np.int16, np.float16):  # (those cannot reach it)
+            for b, n in enumerate(self.measure_counts()):
+                top = dn_bound(self.rig, int(n))
+                if self.measure[b].size and float(np.abs(self.measure[b]).max()) > top:
+                    raise FormatError(
+                        f"{what}: measuring image M{b:02d} holds values beyond +/-{top:g} DN, "
+                        f"more than its {n} subframes can record (an ADC of 24 bits at most)"
+                    )
 
     # --- conversion to/from the layered container ---------------------------------
     def to_layered(self) -> Layered:

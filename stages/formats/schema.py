@@ -378,8 +378,10 @@ def check_layers(
         bins = measuring_layers(layers)
         _check_capture_channels(channels, bins, what)
         _check_measuring_layers(meta, layers, bins, what)
+        if "truth_motion" in layers:
+            _check_motion(layers["truth_motion"], what, "truth_motion")
     if kind == "motion" and "motion" in layers:
-        _check_motion(layers["motion"], what)
+        _check_motion(layers["motion"], what, "motion")
     if kind == "hdr" and "mask" in layers:
         _check_mask(meta.get("mask_codes"), layers["mask"], what)
 
@@ -430,14 +432,14 @@ def _check_measuring_layers(
         )
 
 
-def _check_motion(field: np.ndarray, what: str) -> None:
+def _check_motion(field: np.ndarray, what: str, name: str) -> None:
     top = MAX_SPEED_IMAGES_PER_S * max(field.shape[:2])
     speed = float(np.abs(field).max()) if field.size else 0.0
     if not np.isfinite(speed):
-        raise FormatError(f"{what}: motion: the field holds non-finite velocities")
+        raise FormatError(f"{what}: {name}: the field holds non-finite velocities")
     if speed > top:
         raise FormatError(
-            f"{what}: motion: velocities up to {speed:.3g} px/s; allowed at most "
+            f"{what}: {name}: velocities up to {speed:.3g} px/s; allowed at most "
             f"{top:g} px/s ({MAX_SPEED_IMAGES_PER_S} image sizes per second)"
         )
 
