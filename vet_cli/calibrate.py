@@ -6,7 +6,7 @@ import click
 
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides, rig_profile_choice, rig_profile_option
-from .outputs import Output, check_outputs, force_option
+from .outputs import Output, check_outputs, force_option, profile_file, scene_file
 from .params import SEED, SIZE
 
 
@@ -132,7 +132,16 @@ def cli(
         raise click.UsageError(
             "--save-frames records a rig live: give --rig sim|RIG.toml, not --frames"
         )
-    check_outputs([Output("-o", output), Output("--save-frames", save_frames, "folder")], force)
+    check_outputs(
+        [Output("-o", output), Output("--save-frames", save_frames, "folder")],
+        force,
+        inputs=[
+            ("--rig", None if rig_spec == "sim" else rig_spec),
+            ("--frames", frames_dir),
+            ("--scene", scene_file(scene)),
+            ("--rig-profile", profile_file(kwargs.get("rig_profile"))),
+        ],
+    )
     with Progress("calibrate") as progress:
         cal = c.run_calibration(
             rig_spec,

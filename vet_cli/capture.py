@@ -6,7 +6,15 @@ import click
 
 from ._common import Progress, command, log, verbosity_options
 from .options import rig_options, rig_overrides, rig_profile_choice, rig_profile_option
-from .outputs import CAPTURE_FOLDER_FILES, Output, check_outputs, force_option
+from .outputs import (
+    CAPTURE_FOLDER_FILES,
+    Output,
+    check_outputs,
+    force_option,
+    motion_file,
+    profile_file,
+    scene_file,
+)
 from .params import MOTION, SEED, SIZE, MeasureBins, positive
 
 
@@ -103,7 +111,15 @@ def cli(
     # As capture_frame checks it, and a capture already there is not replaced by surprise
     # (a real one cannot be retaken): before the rig opens.
     check_outputs(
-        [Output("-o", output, "folder", holds=CAPTURE_FOLDER_FILES, parents=False)], force
+        [Output("-o", output, "folder", holds=CAPTURE_FOLDER_FILES, parents=False)],
+        force,
+        inputs=[
+            ("--rig", None if rig_spec == "sim" else rig_spec),
+            ("--calibration", calibration),
+            ("--scene", scene_file(scene)),
+            ("--motion", motion_file(motion)),
+            ("--rig-profile", profile_file(kwargs.get("rig_profile"))),
+        ],
     )
     profile = rig_profile_choice(kwargs)
     overrides = rig_overrides(kwargs)

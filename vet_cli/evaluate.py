@@ -15,7 +15,15 @@ from .options import (
     scale_choice,
     scale_options,
 )
-from .outputs import REPORT_FOLDER_FILES, Output, check_outputs, force_option
+from .outputs import (
+    REPORT_FOLDER_FILES,
+    Output,
+    check_outputs,
+    force_option,
+    motion_file,
+    profile_file,
+    scene_file,
+)
 from .params import MOTION, SEED, SIZE
 
 
@@ -83,7 +91,15 @@ def cli(
 ) -> None:
     from stages.evaluate import results_markdown, run_evaluation, write_report
 
-    check_outputs([Output("-o", output, "folder", holds=REPORT_FOLDER_FILES)], force)
+    check_outputs(
+        [Output("-o", output, "folder", holds=REPORT_FOLDER_FILES)],
+        force,
+        inputs=[
+            ("SCENE", scene_file(scene)),
+            ("--motion", motion_file(motion)),
+            ("--rig-profile", profile_file(kwargs.get("rig_profile"))),
+        ],
+    )
     scale, reach = scale_choice(kwargs)
     with Progress("evaluate", delay_s=0.0, counts=False) as progress:
         ev = run_evaluation(

@@ -45,7 +45,7 @@ def cli(capture: str, output: str, assume_ideal_rig: bool, force: bool) -> None:
     from stages.hdr_static import hdr_static
     from stages.provenance import record_inputs
 
-    check_outputs([Output("-o", output)], force)
+    check_outputs([Output("-o", output)], force, inputs=[("CAPTURE", capture)])
     source = resolve_capture_path(capture)
     cap = read_capture(source)
     img = hdr_static(cap, assume_ideal_rig=assume_ideal_rig)

@@ -7,6 +7,9 @@
   terminal: binary data is for a file or a pipe. Two outputs never name one file.
 - Names are checked as :func:`stages.formats.io.check_output` checks them (extension,
   existing folder) before the command reads its inputs.
+- An output never is, lies inside or contains one of the command's input files or
+  folders, through any link, ``..`` or hard link (:mod:`stages.formats.places`), with
+  ``--force`` too: exit 1, one line naming both.
 """
 
 from __future__ import annotations
@@ -63,8 +66,33 @@ class Output:
     parents: bool = True
 
 
-def check_outputs(outputs: Iterable[Output], force: bool = False) -> None:
+def scene_file(spec: str | None) -> str | None:
+    """The file a SCENE argument names (None for ``builtin:NAME``)."""
+    return None if spec is None or spec.startswith("builtin:") else spec
+
+
+def motion_file(spec: str | None) -> str | None:
+    """The file a ``--motion field:PATH`` names (None for the other motions)."""
+    text = (spec or "").strip()
+    return text[len("field:") :] if text.startswith("field:") else None
+
+
+def profile_file(spec: str | None) -> str | None:
+    """The file a ``--rig-profile`` names (None for a profile's name)."""
+    from stages.optics import PROFILES
+
+    return None if spec is None or spec in PROFILES else spec
+
+
+def check_outputs(
+    outputs: Iterable[Output],
+    force: bool = False,
+    inputs: Iterable[tuple[str, str | None]] = (),
+) -> None:
     """Apply the output rule to a command's outputs, before it reads anything.
+
+    ``inputs``: ``(role, path)`` of every file or folder the command reads (``None``
+    and ``-`` skipped), which no output may be, lie inside or contain.
 
     Raises
     ------
@@ -74,8 +102,11 @@ def check_outputs(outputs: Iterable[Output], force: bool = False) -> None:
     stages.errors.InputError
         A bad name (extension, missing folder), or an existing output without
         ``force`` (exit 1).
+    stages.errors.OutputError
+        An output that is, lies inside or contains an input (exit 1).
     """
     from stages.formats.io import check_output
+    from stages.formats.places import check_apart, locate
 
     outputs = [o for o in outputs if o.path is not None]
     to_stdout = [o.option for o in outputs if str(o.path) == "-"]
@@ -100,6 +131,11 @@ def check_outputs(outputs: Iterable[Output], force: bool = False) -> None:
         seen[key] = o.option
     for o in files:
         check_output(o.path, o.kind, parents=o.parents)
+    check_apart(
+        [locate(o.path, o.option) for o in files],
+        [locate(path, role) for role, path in inputs if path is not None and str(path) != "-"],
+    )
+    for o in files:
         if not force:
             refuse_existing(Path(o.path), o.holds if o.kind == "folder" else None)
 

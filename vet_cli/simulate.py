@@ -13,7 +13,7 @@ from .options import (
     scale_choice,
     scale_options,
 )
-from .outputs import Output, check_outputs, force_option
+from .outputs import Output, check_outputs, force_option, motion_file, profile_file, scene_file
 from .params import MOTION, SEED, SIZE, MeasureBins
 
 BUILTINS = "interior, chart"
@@ -86,7 +86,15 @@ def cli(
     from stages.scenes import load_scene
     from stages.simulate import simulate
 
-    check_outputs([Output("-o", output)], force)
+    check_outputs(
+        [Output("-o", output)],
+        force,
+        inputs=[
+            ("SCENE", scene_file(scene)),
+            ("--motion", motion_file(motion)),
+            ("--rig-profile", profile_file(kwargs.get("rig_profile"))),
+        ],
+    )
     scale, reach = scale_choice(kwargs)
     profile = rig_profile_choice(kwargs)
     overrides = rig_overrides(kwargs)

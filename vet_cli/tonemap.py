@@ -74,7 +74,7 @@ def cli(
     if t_map and mask:
         raise click.UsageError("give --exposure-time-map or --mask, not both")
     what = "T" if t_map else "mask" if mask else None
-    check_outputs([Output("-o", output, "display")], force)  # before any work
+    check_outputs([Output("-o", output, "display")], force, inputs=[("INPUT", input)])
     if input != "-" and os.path.isdir(input):
         input = resolve_capture_path(input)  # a capture folder: its capture
         if what != "T":
