@@ -1,3 +1,4 @@
-from vet_cli.main import cli
+from vet_cli.entry import main
 
-cli(prog_name="vet")
+if __name__ == "__main__":
+    main()

@@ -2,7 +2,8 @@
 
 Exit status: 0 success; 1 runtime failure (one line ``vet <command>: error: ...`` on
 stderr, traceback only with ``-v``); 2 usage error (click's convention, also for a
-:class:`stages.errors.UsageError` that a stage raises).
+:class:`stages.errors.UsageError` that a stage raises); 130, 143 or 129 when SIGINT,
+SIGTERM or SIGHUP stopped it (one line ``vet <command>: interrupted``; :mod:`.signals`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from collections.abc import Callable
 from typing import Any
 
 import click
+
+from . import signals
 
 log = logging.getLogger("vet")
 
@@ -90,7 +93,8 @@ def command(name: str) -> Callable:
 
             setup_logging()
             try:
-                return f(*args, **kwargs)
+                with signals.armed(name):
+                    return f(*args, **kwargs)
             except click.exceptions.Exit:
                 raise
             except click.ClickException:
@@ -104,9 +108,9 @@ def command(name: str) -> Callable:
                 raise click.UsageError(user_message(str(exc)), ctx=ctx) from None
             except VetError as exc:
                 _fail(name, str(exc))
-            except KeyboardInterrupt:
+            except KeyboardInterrupt as exc:  # (a signals.Interrupted: SIGTERM, SIGHUP too)
                 click.echo(f"vet {name}: interrupted", err=True)
-                sys.exit(130)
+                sys.exit(getattr(exc, "exit_status", 130))
             except MemoryError:
                 _fail(name, "out of memory (input too large for this machine)")
             except OSError as exc:
@@ -123,8 +127,11 @@ def command(name: str) -> Callable:
     return deco
 
 
-#: The temporary file that stages.formats.io.spooled_input makes of standard input.
-_STDIN_SPOOL = re.compile(r"[^\s:'\"()]*vet-stdin-[A-Za-z0-9_]+(?:\.(?:exr|npz))?")
+#: The file that stages.formats.io.spooled_input makes of standard input: an unlinked
+#: one read through /proc/self/fd (Linux), else a named temporary file.
+_STDIN_SPOOL = re.compile(
+    r"/proc/self/fd/\d+|[^\s:'\"()]*vet-stdin-[A-Za-z0-9_]+(?:\.(?:exr|npz))?"
+)
 
 
 def user_message(message: str) -> str:
