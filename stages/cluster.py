@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import threading
 import time
 from collections import deque
@@ -27,7 +28,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
-from .errors import VetError
+from .errors import UsageError, VetError
 
 T = TypeVar("T")
 
@@ -39,8 +40,14 @@ WORKER_ENV = {
     "NUMEXPR_NUM_THREADS": "1",
     "OPENCV_FOR_THREADS_NUM": "1",
 }
-#: Seconds to wait for an existing cluster's scheduler, then for its first worker.
+#: Seconds to wait for an existing cluster's first worker.
 CONNECT_TIMEOUT_S = 30.0
+#: Seconds a scheduler has to accept a connection and answer vet's first question
+#: (:func:`check_scheduler`): a few, so that a port where no Dask scheduler listens (a
+#: silent listener, a web server) fails at once.
+HANDSHAKE_TIMEOUT_S = 5.0
+#: Address schemes vet connects to (Dask's ``inproc://`` lives in one process only).
+SCHEDULER_SCHEMES = ("tcp",)
 #: Seconds the client, then the embedded cluster, may take to close.
 CLOSE_TIMEOUT_S = 30.0
 #: Loggers whose records Dask's shutdown races produce.
@@ -321,6 +328,114 @@ def environ_kept() -> Iterator[None]:
         os.environ.update(before)
 
 
+def parse_scheduler_address(text: str) -> str:
+    """``tcp://HOST:PORT`` from ``tcp://HOST:PORT`` or ``HOST:PORT`` (IPv6 hosts in
+    brackets), checked for its form only (nothing is contacted).
+
+    Raises
+    ------
+    UsageError
+        No port, a port outside 1..65535, another scheme than ``tcp``, no host
+        (``option`` is ``--scheduler``: exit status 2 on the command line).
+    """
+    raw = str(text).strip()
+    scheme, sep, rest = raw.partition("://")
+    if not sep:
+        scheme, rest = "tcp", raw
+    form = "give tcp://HOST:PORT, e.g. tcp://10.0.0.5:8786"
+    if scheme.lower() not in SCHEDULER_SCHEMES:
+        raise UsageError(f"{raw!r}: scheme {scheme}:// is not supported; {form}", "--scheduler")
+    host, colon, port = rest.rstrip("/").rpartition(":")
+    if not colon or not host:
+        raise UsageError(f"{raw!r}: no {'host' if colon else 'port'} given; {form}", "--scheduler")
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise UsageError(f"{raw!r}: port {port!r} is not in 1..65535; {form}", "--scheduler")
+    if host.startswith("[") != host.endswith("]") or any(c.isspace() for c in host):
+        raise UsageError(f"{raw!r}: host {host!r} is malformed; {form}", "--scheduler")
+    return f"tcp://{host}:{int(port)}"
+
+
+async def _identity(address: str, timeout_s: float) -> Any:
+    from distributed.comm import connect
+
+    comm = await connect(address, timeout=timeout_s)
+    try:
+        await comm.write({"op": "identity", "reply": True})
+        return await comm.read()
+    finally:
+        await comm.close()
+
+
+def check_scheduler(address: str, timeout_s: float | None = None) -> None:
+    """Connect to ``address`` and ask who it is, within ``timeout_s`` (default
+    :data:`HANDSHAKE_TIMEOUT_S`) all told; before a :class:`distributed.Client` is
+    made, which waits longer and, when it fails, again when it is collected.
+
+    Raises
+    ------
+    VetError
+        Nothing answers, or what answers is no Dask scheduler (one line).
+    """
+    import asyncio
+    import socket
+
+    timeout_s = HANDSHAKE_TIMEOUT_S if timeout_s is None else timeout_s
+    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    try:  # (a refused connection is told at once; Dask's connect retries it)
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        why = exc.strerror or str(exc) or type(exc).__name__
+        raise VetError(f"cannot reach the Dask scheduler at {address} ({why})") from None
+    with quiet_shutdown():
+        try:
+            reply = asyncio.run(asyncio.wait_for(_identity(address, timeout_s), timeout_s))
+        except (asyncio.TimeoutError, TimeoutError):
+            reply = None
+            why = f"no Dask scheduler answered within {timeout_s:.0f} s"
+        except OSError as exc:
+            reply = None
+            why = " ".join(str(exc).split()) or type(exc).__name__
+        except Exception as exc:  # noqa: BLE001 - whatever the other end said was no answer
+            reply = None
+            why = f"what answers there is no Dask scheduler ({type(exc).__name__})"
+    if isinstance(reply, dict) and reply.get("type") == "Scheduler":
+        return
+    if reply is not None:
+        why = "what answers there is no Dask scheduler"
+    raise VetError(f"cannot reach the Dask scheduler at {address} ({why})")
+
+
+#: Signals a terminal sends to its whole foreground process group (Ctrl-C, hang-up).
+GROUP_SIGNALS = ("SIGINT", "SIGHUP")
+
+
+@contextlib.contextmanager
+def group_signals_held() -> Iterator[None]:
+    """Hold :data:`GROUP_SIGNALS` (blocked) on this thread while the block runs, so that
+    the threads it starts, and the processes those start (an embedded cluster's loop
+    and its worker processes), inherit them blocked: Ctrl-C at the terminal then
+    reaches the vet process alone, which closes the cluster, instead of every worker
+    printing a KeyboardInterrupt traceback. A signal that arrives meanwhile is
+    delivered here when the block ends. (A thread's own mask: any thread may hold them.)
+
+    multiprocessing's resource tracker is started first: starting it *unblocks* SIGINT
+    on the calling thread (``resource_tracker.ensure_running`` blocks it around its
+    spawn, then unblocks rather than restores), which inside the block would let the
+    processes spawned after it hear Ctrl-C."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    held = {getattr(signal, n) for n in GROUP_SIGNALS if hasattr(signal, n)}
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
 @contextlib.contextmanager
 def dask_client(
     workers: int,
@@ -331,8 +446,10 @@ def dask_client(
     """A Dask client on ``scheduler``, else on an embedded LocalCluster of ``workers``.
 
     ``info`` is filled with ``executor`` (words), ``workers`` (count) and ``startup_s``.
-    Raises :class:`~stages.errors.VetError` when the scheduler cannot be reached or no
-    worker joins it within ``timeout_s`` (default :data:`CONNECT_TIMEOUT_S`).
+    Raises :class:`~stages.errors.UsageError` for a malformed ``scheduler`` address
+    (:func:`parse_scheduler_address`), :class:`~stages.errors.VetError` when no Dask
+    scheduler answers there within :data:`HANDSHAKE_TIMEOUT_S` (:func:`check_scheduler`)
+    or no worker joins it within ``timeout_s`` (default :data:`CONNECT_TIMEOUT_S`).
     """
     import distributed
 
@@ -344,34 +461,14 @@ def dask_client(
     client = None
     try:
         if scheduler:
-            try:
-                client = distributed.Client(
-                    scheduler, timeout=f"{timeout_s}s", set_as_default=False
-                )
-            except (OSError, TimeoutError) as exc:
-                raise VetError(f"cannot reach the Dask scheduler at {scheduler} ({exc})") from None
-            try:
-                client.wait_for_workers(1, timeout=timeout_s)
-            except (TimeoutError, OSError):
-                client.close()
-                raise VetError(
-                    f"no Dask worker joined the scheduler at {scheduler} within {timeout_s:.0f} s"
-                ) from None
-            info["executor"] = f"dask scheduler {scheduler}"
+            address = parse_scheduler_address(scheduler)
+            client = _remote_client(address, timeout_s)
+            info["executor"] = f"dask scheduler {address}"
         else:
-            with environ_kept():  # (the nanny's pre-spawn variables are its workers')
-                cluster = distributed.LocalCluster(
-                    n_workers=workers,
-                    threads_per_worker=1,
-                    processes=True,
-                    host="127.0.0.1",
-                    # (the scheduler's HTTP routes on a free loopback port: two
-                    # clusters at once do not compete for Dask's default 8787)
-                    dashboard_address="127.0.0.1:0",
-                    worker_dashboard_address=None,
-                    env=dict(WORKER_ENV),
-                    silence_logs=logging.ERROR,  # worker heartbeat warnings under load: noise
-                )
+            # (the nanny's pre-spawn variables are its workers'; Ctrl-C is for vet; the
+            # cluster is held before a signal held meanwhile is delivered: closed below)
+            with environ_kept(), group_signals_held():
+                cluster = distributed.LocalCluster(**_local_cluster_options(workers))
             client = distributed.Client(cluster, set_as_default=False)
             client.register_plugin(quiet_shutdown_plugin(), name="vet-quiet-shutdown")
             info["executor"] = f"dask LocalCluster, {workers} worker processes on 127.0.0.1"
@@ -380,6 +477,44 @@ def dask_client(
         yield client
     finally:
         _close(client, cluster)
+
+
+def _local_cluster_options(workers: int) -> dict[str, Any]:
+    """An embedded cluster: ``workers`` processes of one thread on the loopback."""
+    return {
+        "n_workers": workers,
+        "threads_per_worker": 1,
+        "processes": True,
+        "host": "127.0.0.1",
+        # (the scheduler's HTTP routes on a free loopback port: two clusters at once do
+        # not compete for Dask's default 8787)
+        "dashboard_address": "127.0.0.1:0",
+        "worker_dashboard_address": None,
+        "env": dict(WORKER_ENV),
+        "silence_logs": logging.ERROR,  # worker heartbeat warnings under load: noise
+    }
+
+
+def _remote_client(scheduler: str, timeout_s: float) -> Any:
+    """A client of the scheduler at ``scheduler`` once it answered
+    (:func:`check_scheduler`) and a first worker joined it within ``timeout_s``."""
+    import distributed
+
+    check_scheduler(scheduler)
+    try:
+        client = distributed.Client(
+            scheduler, timeout=f"{HANDSHAKE_TIMEOUT_S}s", set_as_default=False
+        )
+    except (OSError, TimeoutError) as exc:
+        raise VetError(f"cannot reach the Dask scheduler at {scheduler} ({exc})") from None
+    try:
+        client.wait_for_workers(1, timeout=timeout_s)
+    except (TimeoutError, OSError):
+        _close(client, None)
+        raise VetError(
+            f"no Dask worker joined the scheduler at {scheduler} within {timeout_s:.0f} s"
+        ) from None
+    return client
 
 
 def _import_modules(names: tuple[str, ...]) -> None:

@@ -6,6 +6,7 @@ import click
 
 from ._common import Progress, command, log, verbosity_options
 from .outputs import Output, check_outputs, force_option
+from .params import SCHEDULER
 
 
 def _tile_value(value: str) -> int | str:
@@ -107,9 +108,11 @@ Example:
 )
 @click.option(
     "--scheduler",
+    type=SCHEDULER,
     metavar="ADDRESS",
     default=None,
-    help="Run the tiles on the existing Dask cluster at ADDRESS (tcp://HOST:PORT).",
+    help="Run the tiles on the existing Dask cluster at ADDRESS (tcp://HOST:PORT); a frame "
+    "solved in one piece does not use it (said on stderr).",
 )
 @force_option
 @verbosity_options
@@ -156,11 +159,13 @@ def cli(
             Output("--motion-picture", motion_picture, "display"),
         ],
         force,
+        inputs=[("CAPTURE", capture)],
     )
     source = resolve_capture_path(capture)
     # (the simulator's truth layers only for the truth's motion: a reconstruction
     # holds no more than it uses)
     cap = read_capture(source, truth=motion_init == "truth")
+    _say_if_not_distributed(method, tile, cap, jobs, scheduler)
     if method == "burst":
         from stages.burst import burst_hdr
 
@@ -192,3 +197,29 @@ def cli(
         )
     if motion_picture:
         write_display_image(motion_picture, picture([(f"estimated ({img.meta['method']})", vel)]))
+
+
+def _say_if_not_distributed(
+    method: str, tile: int | str, cap: object, jobs: int, scheduler: str | None
+) -> None:
+    """Warn that -j / --scheduler go unused where the frame is not solved in tiles
+    (only tiles run on Dask), rather than let the user believe the cluster did the work."""
+    if jobs <= 1 and scheduler is None:
+        return
+    from stages.deblur.tiles import MIN_TILE_PX, resolve_tile
+
+    h, w = cap.shape
+    size = resolve_tile(tile, (h, w), len(cap.channels)) if method == "vet" else None
+    if size is not None and max(h, w) > size:
+        return
+    given = f"--scheduler {scheduler}" if scheduler is not None else f"-j {jobs}"
+    if method != "vet":
+        why = f"--method {method} runs in one piece"
+    elif max(h, w) <= MIN_TILE_PX:
+        why = f"the {w}x{h} frame is solved in one piece (too small for tiles)"
+    else:
+        why = (
+            f"the {w}x{h} frame is solved in one piece (--tile N, {MIN_TILE_PX} <= N < "
+            f"{max(h, w)}, solves it in tiles there)"
+        )
+    log.warning("deblur: %s not used: %s", given, why)

@@ -79,7 +79,44 @@ def non_negative() -> FiniteFloatRange:
     return FiniteFloatRange(min=0)
 
 
+class SchedulerAddress(click.ParamType):
+    """A Dask scheduler's address, ``tcp://HOST:PORT`` (or ``HOST:PORT``), checked for
+    its form before anything is contacted (:func:`stages.cluster.parse_scheduler_address`)."""
+
+    name = "ADDRESS"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        from stages.cluster import parse_scheduler_address
+
+        try:
+            return parse_scheduler_address(str(value))
+        except InputError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+class Timeout(click.ParamType):
+    """Seconds (a finite number > 0), ``auto`` (kept as text) or ``none`` (None)."""
+
+    name = "SECONDS|auto|none"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None):
+        if value is None or isinstance(value, int | float):
+            return value
+        text = str(value).strip().lower()
+        if text in ("auto", "none"):
+            return None if text == "none" else "auto"
+        try:
+            seconds = float(text)
+        except ValueError:
+            seconds = math.nan
+        if not (math.isfinite(seconds) and seconds > 0):
+            self.fail(f"{value!r}: give a number of seconds > 0, auto or none", param, ctx)
+        return seconds
+
+
 MOTION = MotionSpec()
+SCHEDULER = SchedulerAddress()
+TIMEOUT = Timeout()
 SIZE = Size()
 #: Noise seeds: numpy's generators take non-negative integers.
 SEED = click.IntRange(min=0)
