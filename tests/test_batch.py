@@ -21,6 +21,7 @@ from stages.batch import (
     MANIFEST_NAME,
     STEPS,
     SUMMARY_NAME,
+    BatchOptions,
     CaptureUnit,
     Step,
     StepSpecError,
@@ -204,7 +205,7 @@ def test_unavailable_step_stops_the_run_with_a_clear_error(tree, tmp_path):
     )
     try:
         with pytest.raises(VetError, match="'fake' is not available"):
-            run_batch(tree, tmp_path / "out", steps="fake")
+            run_batch(tree, tmp_path / "out", BatchOptions(steps="fake"))
         assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.exr"))
     finally:
         STEPS.pop("fake")
@@ -289,7 +290,7 @@ def test_rerun_does_no_work(tree, tmp_path):
     os.utime(tree / "b.npz", ns=(time.time_ns(), time.time_ns()))
     assert run_batch(tree, out).summary["counts"]["done"] == 0
     # --retry-failed tries the failed ones again, and only those.
-    report = run_batch(tree, out, retry_failed=True)
+    report = run_batch(tree, out, BatchOptions(retry_failed=True))
     assert report.summary["counts"]["done"] == 0 and report.summary["counts"]["failed"] == 2
     assert [f["cached"] for f in report.failures] == [False, False]
 
@@ -309,7 +310,12 @@ def test_changed_parameter_reruns_only_the_affected_step(tree, tmp_path):
     assert (out / "a.png").read_bytes() != png_before
     assert summary(out)["params"]["tonemap"]["exposure"] == 2.0
     # The same parameters again: nothing to do.
-    assert run_batch(tree, out, params={"tonemap": {"exposure": 2}}).summary["counts"]["done"] == 0
+    assert (
+        run_batch(tree, out, BatchOptions(params={"tonemap": {"exposure": 2}})).summary["counts"][
+            "done"
+        ]
+        == 0
+    )
 
 
 def test_changed_input_and_damaged_outputs_rerun(tree, tmp_path):
@@ -413,7 +419,7 @@ def test_kill_9_midway_then_rerun_completes_with_no_corrupt_output(capture_tree,
 
 def test_local_cluster_two_workers(tree, tmp_path):
     out = tmp_path / "out"
-    report = run_batch(tree, out, jobs=2)
+    report = run_batch(tree, out, BatchOptions(jobs=2))
     assert "LocalCluster, 2 worker" in report.summary["executor"]
     assert report.summary["counts"]["done"] == 6
     assert {f["capture"] for f in report.failures} == set(BAD)

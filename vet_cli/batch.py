@@ -9,7 +9,7 @@ from typing import Any
 import click
 
 from ._common import Progress, State, command, log, verbosity_options
-from .params import STOPS
+from .params import SCHEDULER, STOPS, TIMEOUT
 
 
 def _parse_param(text: str) -> tuple[str, str, Any]:
@@ -45,11 +45,16 @@ retried until its input or parameters change (--retry-failed retries it).
 
 Work runs on Dask: an embedded local cluster of -j worker processes on 127.0.0.1, or the
 existing cluster at --scheduler (its workers must see ROOT and OUT at the same paths).
--j 1 without --scheduler runs in this process.
+-j 1 without --scheduler runs in this process. Each capture runs in a process of its
+own: one that runs past --timeout is stopped and fails alone.
+
+OUT must be apart from ROOT (neither inside the other, through any link), and no two
+captures may write one output: both are checked before any work.
 
 Exit status: 0 every capture done or up to date; 3 the run completed but some captures
-failed (listed); 1 the run could not proceed (ROOT unreadable, step unavailable,
-scheduler unreachable, OUT locked by another run); 2 usage error.
+failed (listed); 1 the run could not proceed (ROOT unreadable, OUT not apart from ROOT,
+colliding output names, step unavailable, scheduler unreachable, OUT locked by another
+run); 2 usage error; 130/143/129 interrupted (rerun to resume).
 
 \b
 Examples:
@@ -81,6 +86,7 @@ Examples:
 )
 @click.option(
     "--scheduler",
+    type=SCHEDULER,
     metavar="ADDRESS",
     default=None,
     help="Use the existing Dask cluster at ADDRESS (tcp://HOST:PORT) instead.",
@@ -93,6 +99,15 @@ Examples:
     multiple=True,
     metavar="STEP.NAME=VALUE",
     help="Any step parameter (JSON value), e.g. deblur.method=paper. Repeatable.",
+)
+@click.option(
+    "--timeout",
+    type=TIMEOUT,
+    default="auto",
+    show_default=True,
+    metavar="SECONDS|auto|none",
+    help="Time each capture (all its steps) may run before it is stopped and fails alone; "
+    "auto: 10 minutes plus 30 s per MB of the capture file; none: no limit.",
 )
 @click.option("--force", is_flag=True, help="Rerun every step of every capture.")
 @click.option(
@@ -110,12 +125,38 @@ def cli(
     operator: str | None,
     exposure: float | None,
     params: tuple[str, ...],
+    timeout: float | str | None,
     force: bool,
     retry_failed: bool,
     dry_run: bool,
 ) -> None:
-    from stages.batch import EXIT_SOME_FAILED, StepSpecError, run_batch
+    from stages.batch import EXIT_SOME_FAILED, BatchOptions, StepSpecError, run_batch
 
+    options = BatchOptions(
+        steps=steps,
+        params=_overrides(params, operator, exposure),
+        jobs=jobs or os.cpu_count() or 1,
+        scheduler=scheduler,
+        force=force,
+        retry_failed=retry_failed,
+        dry_run=dry_run,
+        timeout=timeout,
+    )
+    progress = Progress("batch")
+    try:
+        with progress:
+            report = run_batch(root, output, options, on_event=_events(root, progress))
+    except StepSpecError as exc:
+        raise click.UsageError(str(exc)) from None
+    _tell(report, output, dry_run)
+    if report.failures:
+        sys.exit(EXIT_SOME_FAILED)
+
+
+def _overrides(
+    params: tuple[str, ...], operator: str | None, exposure: float | None
+) -> dict[str, dict[str, Any]]:
+    """``--param`` and the tonemap shortcuts as ``{step: {name: value}}``."""
     overrides: dict[str, dict[str, Any]] = {}
     for text in params:
         step, key, value = _parse_param(text)
@@ -124,8 +165,11 @@ def cli(
         overrides.setdefault("tonemap", {})["operator"] = operator
     if exposure is not None:
         overrides.setdefault("tonemap", {})["exposure"] = exposure
-    n_jobs = jobs or os.cpu_count() or 1
-    progress = Progress("batch")
+    return overrides
+
+
+def _events(root: str, progress: Progress) -> Any:
+    """The run's events on stderr: the plan, the executor, each result."""
 
     def on_event(kind: str, data: dict[str, Any]) -> None:
         if kind == "plan":
@@ -150,24 +194,14 @@ def cli(
                 log.debug("batch: %s: done in %.2f s", o["capture"], o.get("elapsed_s", 0.0))
             progress(data["done"], data["total"])
 
-    try:
-        with progress:
-            report = run_batch(
-                root,
-                output,
-                steps=steps,
-                params=overrides,
-                jobs=n_jobs,
-                scheduler=scheduler,
-                force=force,
-                retry_failed=retry_failed,
-                dry_run=dry_run,
-                on_event=on_event,
-            )
-    except StepSpecError as exc:
-        raise click.UsageError(str(exc)) from None
+    return on_event
+
+
+def _tell(report: Any, output: str, dry_run: bool) -> None:
+    """The run's end on stderr: what would run, or the counts and the failures."""
     s = report.summary
     c = s["counts"]
+    where = os.path.join(output, "batch-summary.json")
     if dry_run:
         for o in s["captures"]:
             if o["status"] == "would-run":
@@ -182,16 +216,15 @@ def cli(
         c["failed"],
         s["timing_s"]["total"],
         s["executor"],
-        os.path.join(output, "batch-summary.json"),
+        where,
     )
     if report.failures:
         _print_failures(report.failures)
         click.echo(
             f"vet batch: error: {c['failed']} of {c['captures']} captures failed "
-            f"(listed above and in {os.path.join(output, 'batch-summary.json')})",
+            f"(listed above and in {where})",
             err=True,
         )
-        sys.exit(EXIT_SOME_FAILED)
 
 
 def _print_failures(failures: list[dict[str, Any]]) -> None:

@@ -5,7 +5,7 @@ Dask runs on the engine of :mod:`stages.cluster` (shared with tiled deblur): an 
 thread each, no dashboard), or an existing cluster through ``scheduler``
 (``tcp://HOST:PORT``). Results stream back as they complete
 (:func:`distributed.as_completed`), one list per burst of completions; a task whose
-worker dies becomes a failed :class:`~stages.batch.worker.CaptureResult`.
+worker dies becomes a failed :class:`~stages.batch.jobs.CaptureResult`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ from collections.abc import Iterator
 from typing import Any
 
 from ..cluster import dask_client
-from .worker import CaptureJob, CaptureResult, process_capture
+from .jobs import CaptureJob, CaptureResult
+from .worker import process_capture
 
 
 def results_in_process(jobs: list[CaptureJob]) -> Iterator[list[CaptureResult]]:

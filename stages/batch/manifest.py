@@ -164,26 +164,23 @@ class Manifest:
 def output_lock(out_dir: str | Path) -> Iterator[None]:
     """Hold an exclusive lock on the output folder for the length of a run.
 
-    The lock is an ``flock`` on ``OUT/.vet-batch.lock``: the system drops it when the
-    process dies (even by ``kill -9``), so a killed run never blocks the next one.
+    The lock is filelock's on ``OUT/.vet-batch.lock``: an ``flock`` on POSIX, which the
+    system drops when the process dies (even by ``kill -9``), so a killed run never
+    blocks the next one. (filelock rather than fcntl by hand: the same lock, also where
+    fcntl is missing, and processes forked while it is held, a capture's own
+    (:mod:`.child`), do not keep it.)
     """
-    path = Path(out_dir) / LOCK_NAME
+    import filelock
+
+    lock = filelock.FileLock(Path(out_dir) / LOCK_NAME, timeout=0)
     try:
-        import fcntl
-    except ImportError:  # not POSIX: no locking
-        yield
-        return
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        lock.acquire()
+    except filelock.Timeout:
+        raise VetError(f"{out_dir}: another vet batch is writing into this folder") from None
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise VetError(f"{out_dir}: another vet batch is writing into this folder") from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
         yield
     finally:
-        os.close(fd)
+        lock.release()
 
 
 def remove_stale_temporaries(out_dir: str | Path) -> int:

@@ -65,7 +65,7 @@ def _throughput(captures: Path, n_workers: int) -> dict[str, float]:
     """Best of REPEATS runs on a LocalCluster of ``n_workers`` single-thread processes."""
     from distributed import LocalCluster
 
-    from stages.batch import run_batch
+    from stages.batch import BatchOptions, run_batch
     from stages.cluster import WORKER_ENV
 
     best: dict[str, float] = {}
@@ -82,7 +82,11 @@ def _throughput(captures: Path, n_workers: int) -> dict[str, float]:
         for _ in range(REPEATS):
             out = CACHE / f"out-{n_workers}w"
             shutil.rmtree(out, ignore_errors=True)
-            report = run_batch(captures, out, jobs=n_workers, scheduler=cluster.scheduler_address)
+            report = run_batch(
+                captures,
+                out,
+                BatchOptions(jobs=n_workers, scheduler=cluster.scheduler_address),
+            )
             assert report.exit_status == 0 and report.summary["counts"]["done"] == N_CAPTURES
             process_s = report.summary["timing_s"]["process"]
             task_s = [o["elapsed_s"] for o in report.summary["captures"]]
