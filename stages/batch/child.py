@@ -71,18 +71,19 @@ def run_limited(run: Runner, job: CaptureJob, timeout_s: float) -> CaptureResult
     receive, send = ctx.Pipe(duplex=False)
     alive, alive_here = ctx.Pipe(duplex=False)  # (closed here: the child ends itself)
     child = ctx.Process(target=_child, args=(run, job, send, alive), name=f"vet-capture:{job.rel}")
-    with _children_allowed(), group_signals_held():
-        child.start()
-    send.close()
-    alive.close()
     try:
+        with _children_allowed(), group_signals_held():
+            child.start()  # (a signal held meanwhile is raised as the block ends)
+        send.close()
+        alive.close()
         messages, finished = _receive(receive, time.monotonic() + timeout_s)
     except BaseException:
-        _stop(child, job)
+        if child.pid is not None:
+            _stop(child, job)
         raise
     finally:
-        receive.close()
-        alive_here.close()
+        for conn in (send, alive, receive, alive_here):
+            conn.close()
     steps = [m[1] for m in messages if m[0] == "step"]
     result = next((m[1] for m in messages if m[0] == "result"), None)
     if not finished:
