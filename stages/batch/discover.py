@@ -20,7 +20,6 @@ import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
 
 from ..errors import FormatError
 from ..formats.capture import CAPTURE_FILENAMES
