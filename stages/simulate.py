@@ -205,10 +205,9 @@ def simulate(
     truth = radiance.astype(np.float32)
     common = dict(channels=list(scene.channels), rig=rig, truth=truth, truth_motion=truth_motion)
     if isinstance(motion, TrajectoryMotion):
-        times = trajectory_times(tf, tau, k_sub)
-        labels, disp = motion.trajectory((h, w), times)
-        common["truth_layers"] = labels
-        base_meta["truth_trajectory"] = {"times": times.tolist(), "disp": disp.tolist()}
+        paths = motion.truth((h, w), trajectory_times(tf, tau, k_sub))
+        common["truth_layers"] = paths.labels
+        base_meta["truth_trajectory"] = paths.meta()
 
     def meta_for(method: str, integration_s: float, leakage_applies: bool) -> dict[str, Any]:
         m = dict(

@@ -32,7 +32,12 @@ from the same scene, motion and noise.
 \b
 Motion SPEC: none | translate:VX,VY | object:X,Y,W,H:VX,VY | rotate:DEG_PER_S[,CX,CY]
 (pixels or degrees per second) | field:PATH (a motion file, as vet deblur --motion-out
-writes: velocity per pixel in px/s, constant in time).
+writes: velocity per pixel in px/s, constant in time). Motions that change within the
+frame, stored with their true trajectory: shake:AMP[,SEED] (camera shake, AMP px rms) |
+oscillate:X,Y,W,H:AX,AY[,HZ] | accel:X,Y,W,H:VX,VY:AX,AY (px/s, px/s^2) |
+path:X,Y,W,H:T1,DX1,DY1;T2,DX2,DY2;... (keyframes: s, px; a smooth path through them) |
+spin:X,Y,W,H:DEG_PER_S (the rectangle turns about its centre) | rectangles joined by +,
+each on its own path, the later in front (e.g. object:10,10,40,30:30,0+spin:90,60,40,40:90).
 
 \b
 Example:

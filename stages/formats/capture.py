@@ -22,7 +22,10 @@ layer              channels     meaning
 ``truth_layers``   Y            optional true layer of each pixel at t = 0 (0, 1, ...)
                                 for a motion along paths: ``meta["truth_trajectory"]``
                                 holds ``times`` (M,) s and ``disp`` (layers, M, 2) px,
-                                each layer's displacement from t = 0
+                                each layer's displacement from t = 0; for layers that
+                                turn, ``anchor`` (layers, 2) and ``linear`` (layers,
+                                M, 2, 2) too (:class:`TruthPaths`); ``front`` the
+                                layers front to back
 =================  ===========  =====================================================
 
 Metadata: ``kind = "capture"``, ``rig`` (:class:`~stages.rig.RigParams`),
@@ -138,6 +141,58 @@ def dn_bound(rig: RigParams, n_subframes: int) -> float:
     return float(n_subframes) * (2.0**24 + rig.black_level_dn)
 
 
+@dataclass
+class TruthPaths:
+    """A simulated capture's true motion along paths (``truth_layers`` and
+    ``meta["truth_trajectory"]``): rigid layers on the t = 0 grid, each moving by an
+    affine map per time. The point ``x0`` (x, y px, pixel centres on integers, y down)
+    of layer ``k`` is at time ``times[m]`` at
+
+        ``x = anchor[k] + disp[k, m] + linear[k, m] @ (x0 - anchor[k])``
+
+    so its displacement ``D(x0, t) = x - x0`` is one vector per layer where ``linear``
+    is None (every layer translates: ``disp`` alone, anchors irrelevant) and varies
+    over the layer where it turns. ``labels`` (H, W) int32 is each pixel's layer at
+    t = 0 (0 the background), ``times`` (M,) s, ``disp`` (K, M, 2) px, ``anchor``
+    (K, 2) px, ``linear`` (K, M, 2, 2) or None, ``front`` the layers that occlude, front
+    to back (every layer but 0, the background)."""
+
+    labels: np.ndarray
+    times: np.ndarray
+    disp: np.ndarray
+    anchor: np.ndarray
+    linear: np.ndarray | None
+    front: list[int]
+
+    def maps(self) -> np.ndarray:
+        """Each layer's map at each time as ``x = A x0 + b``: (K, M, 2, 3) float64."""
+        k_n, m_n = self.disp.shape[:2]
+        lin = self.linear
+        if lin is None:
+            lin = np.broadcast_to(np.eye(2), (k_n, m_n, 2, 2))
+        out = np.empty((k_n, m_n, 2, 3))
+        out[..., :2] = lin
+        a = self.anchor[:, None, :]
+        out[..., 2] = a + self.disp - np.einsum("kmij,kj->kmi", lin, self.anchor)
+        return out
+
+    def positions(self, m: int) -> np.ndarray:
+        """Where each pixel of t = 0 is at ``times[m]``: (H, W, 2) px (x, y)."""
+        h, w = self.labels.shape
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+        a = self.maps()[:, m][self.labels]  # (H, W, 2, 3)
+        return a[..., 0] * xx[..., None] + a[..., 1] * yy[..., None] + a[..., 2]
+
+    def meta(self) -> dict[str, Any]:
+        """The ``truth_trajectory`` metadata (:class:`stages.formats.schema.TruthTrajectory`)."""
+        out: dict[str, Any] = {"times": self.times.tolist(), "disp": self.disp.tolist()}
+        if self.linear is not None:
+            out["anchor"] = np.asarray(self.anchor, float).tolist()
+            out["linear"] = self.linear.tolist()
+        out["front"] = [int(k) for k in self.front]
+        return out
+
+
 #: Time bins the motion estimators read of a capture that keeps its whole stream.
 MOTION_BINS = 8
 
@@ -177,6 +232,24 @@ class Capture:
     @property
     def shape(self) -> tuple[int, int]:
         return self.I.shape[:2]
+
+    def truth_paths(self) -> TruthPaths | None:
+        """The true motion along paths of a simulated capture, or None (no
+        ``truth_layers``: constant velocities, in ``truth_motion``)."""
+        tt = self.meta.get("truth_trajectory")
+        if self.truth_layers is None or not isinstance(tt, dict):
+            return None
+        disp = np.asarray(tt["disp"], np.float64)
+        k_n = disp.shape[0]
+        linear = tt.get("linear")
+        return TruthPaths(
+            labels=self.truth_layers.astype(np.int32),
+            times=np.asarray(tt["times"], np.float64),
+            disp=disp,
+            anchor=np.asarray(tt.get("anchor", np.zeros((k_n, 2))), np.float64),
+            linear=None if linear is None else np.asarray(linear, np.float64),
+            front=[int(k) for k in tt.get("front", range(k_n - 1, 0, -1))],
+        )
 
     @property
     def models_lcos(self) -> bool:

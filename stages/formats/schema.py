@@ -115,7 +115,9 @@ class _FileMeta(_Open):
 
 
 class TruthTrajectory(BaseModel):
-    """Each layer's true path (:mod:`stages.motion`, motions along paths)."""
+    """Each layer's true path (:class:`stages.formats.capture.TruthPaths`, motions along
+    paths): ``disp`` per layer and time; for layers that turn, ``anchor`` per layer and
+    ``linear`` (2 x 2) per layer and time; ``front`` the occluding layers, front to back."""
 
     model_config = ConfigDict(extra="forbid")
     times: Annotated[list[Float], Field(min_length=1, max_length=MAX_SUBFRAMES + 2)]
@@ -128,12 +130,52 @@ class TruthTrajectory(BaseModel):
         ],
         Field(min_length=1, max_length=16),
     ]
+    anchor: (
+        Annotated[
+            list[Annotated[list[Float], Field(min_length=2, max_length=2)]],
+            Field(max_length=16),
+        ]
+        | None
+    ) = None
+    linear: (
+        Annotated[
+            list[
+                Annotated[
+                    list[
+                        Annotated[
+                            list[Annotated[list[Float], Field(min_length=2, max_length=2)]],
+                            Field(min_length=2, max_length=2),
+                        ]
+                    ],
+                    Field(max_length=MAX_SUBFRAMES + 2),
+                ]
+            ],
+            Field(max_length=16),
+        ]
+        | None
+    ) = None
+    front: (
+        Annotated[list[Annotated[int, Field(strict=True, ge=1, le=15)]], Field(max_length=15)]
+        | None
+    ) = None
 
     @model_validator(mode="after")
     def _lengths(self) -> TruthTrajectory:
+        k_n = len(self.disp)
         for k, path in enumerate(self.disp):
             if len(path) != len(self.times):
                 raise ValueError(f"disp.{k}: {len(path)} displacements for {len(self.times)} times")
+        if (self.anchor is None) != (self.linear is None):
+            raise ValueError("anchor and linear come together (layers that turn)")
+        if self.anchor is not None and len(self.anchor) != k_n:
+            raise ValueError(f"anchor: {len(self.anchor)} anchors for {k_n} layers")
+        for k, path in enumerate(self.linear or []):
+            if len(path) != len(self.times):
+                raise ValueError(f"linear.{k}: {len(path)} maps for {len(self.times)} times")
+        if self.linear is not None and len(self.linear) != k_n:
+            raise ValueError(f"linear: {len(self.linear)} layers' maps for {k_n} layers")
+        if self.front is not None and sorted(self.front) != list(range(1, k_n)):
+            raise ValueError(f"front: {self.front} is not the layers 1 .. {k_n - 1}, once each")
         return self
 
 
