@@ -108,7 +108,7 @@ def run_evaluation(
     from .metrics import measurable_floor, stops_error
     from .motion import check_in_frame, parse_motion
     from .scenes import load_scene
-    from .simulate import simulate
+    from .simulate import Radiance, simulate
 
     unknown = [r for r in rows if r not in ROWS + EXTRA_ROWS]
     if unknown or not rows:
@@ -139,9 +139,8 @@ def run_evaluation(
         rig,
         seed=seed,
         methods=renders,
-        scale=scale,
-        reach_subframes=reach_subframes,
         progress=part(0),
+        radiance=Radiance(scale, reach_subframes),
     )
     sim_s = time.perf_counter() - t0
     vet = caps["vet"]

@@ -1,4 +1,4 @@
-"""The burst-merge baseline (stages/burst.py): units, alignment and merge against known
+"""The burst-merge baseline (stages/burst/): units, alignment and merge against known
 answers, and the command that runs it on a capture."""
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from stages.metrics import stops_error
 from stages.motion import parse_motion
 from stages.rig import RigParams
 from stages.scenes import builtin_interior
-from stages.simulate import simulate
+from stages.simulate import Radiance, simulate
 
 
 def _capture(motion: str, w: int = 96, h: int = 80, seed: int = 1):
@@ -31,7 +31,12 @@ def flat_dark_capture(w: int = 96, h: int = 80, signal: float = 2000.0, seed: in
     rig = RigParams(sensor_size=(w, h))
     scene = Scene(np.ones((h, w, 1), np.float32), ["Y"], "flat")
     return simulate(
-        scene, parse_motion("none"), rig, seed=seed, methods=["vet"], scale=signal / rig.frame_s
+        scene,
+        parse_motion("none"),
+        rig,
+        seed=seed,
+        methods=["vet"],
+        radiance=Radiance(signal / rig.frame_s),
     )["vet"]
 
 
@@ -166,7 +171,7 @@ def test_still_pixels_are_fused_by_default_when_something_moves():
         rig,
         seed=5,
         methods=["vet"],
-        scale=2000.0 / rig.frame_s,
+        radiance=Radiance(2000.0 / rig.frame_s),
     )["vet"]
     static = hdr_static(cap).radiance[..., 0]
     auto, _ = deblur(cap, "vet", motion_init="truth")

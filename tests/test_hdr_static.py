@@ -11,7 +11,7 @@ from stages.metrics import stops_error
 from stages.motion import parse_motion
 from stages.rig import RigParams
 from stages.scenes import load_scene
-from stages.simulate import simulate
+from stages.simulate import Radiance, simulate
 from tests.conftest import SHARED_SCENES
 
 
@@ -54,7 +54,9 @@ def test_saturated_pixels_are_recovered_from_measuring_images_and_flagged():
     # Bright enough that the VET pixel saturates in the two subframes before closing.
     value = np.float32(rig.threshold_e / rig.subframe_s)
     sc = Scene(np.full((32, 40, 1), value, np.float32), ["Y"], "flat")
-    cap = simulate(sc, parse_motion("none"), rig, seed=0, scale=1.0, measure_bins=8)["vet"]
+    cap = simulate(sc, parse_motion("none"), rig, seed=0, measure_bins=8, radiance=Radiance(1.0))[
+        "vet"
+    ]
     assert (cap.I >= rig.saturation_dn).mean() > 0.9
     out = hdr_static(cap)
     assert (out.mask == 1).mean() > 0.9

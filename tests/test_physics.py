@@ -16,7 +16,7 @@ from stages.physics import (
 )
 from stages.rig import RigParams
 from stages.scenes import Scene
-from stages.simulate import simulate
+from stages.simulate import Radiance, simulate
 
 
 def flat_scene(value: float, w: int = 40, h: int = 32) -> Scene:
@@ -106,7 +106,9 @@ def test_closure_time_matches_the_threshold_arithmetic():
     per_sub_e = rig.threshold_e / 9.5  # crosses during the 10th subframe
     scale = 1.0
     value = per_sub_e / rig.subframe_s
-    cap = simulate(flat_scene(value), parse_motion("none"), rig, seed=1, scale=scale)["vet"]
+    cap = simulate(flat_scene(value), parse_motion("none"), rig, seed=1, radiance=Radiance(scale))[
+        "vet"
+    ]
     expected = (10 + rig.latency_subframes) * rig.subframe_s
     # Shot noise can move the crossing by a subframe for a few cells; the bulk is exact.
     frac = np.mean(np.isclose(cap.T, expected))
@@ -122,20 +124,24 @@ def test_reach_subframes_sets_when_the_p999_pixel_closes():
     scene = flat_scene(3.0)
     base = None
     for n in (1, 4, 8):
-        cap = simulate(scene, parse_motion("none"), rig, seed=3, reach_subframes=n)["vet"]
+        cap = simulate(
+            scene, parse_motion("none"), rig, seed=3, radiance=Radiance(reach_subframes=n)
+        )["vet"]
         base = base or cap.radiance_scale
         assert cap.radiance_scale == pytest.approx(base / n, rel=1e-6)
         closes = np.round(cap.T / rig.subframe_s) - rig.latency_subframes
         assert np.all(np.abs(closes - n) <= 1), (n, np.unique(closes))
         assert np.median(closes) in (n, n + 1)
     with pytest.raises(ValueError, match="positive"):
-        simulate(scene, parse_motion("none"), rig, reach_subframes=0.0)
+        simulate(scene, parse_motion("none"), rig, radiance=Radiance(reach_subframes=0.0))
 
 
 def test_leakage_and_dark_current_enter_the_vet_image():
     rig = RigParams(sensor_size=(40, 32), read_noise_e=0.0, leakage=0.01)
     value = rig.threshold_e / rig.subframe_s  # crosses in subframe 0, closes at 2 tau
-    cap = simulate(flat_scene(value / 20), parse_motion("none"), rig, seed=2, scale=1.0)["vet"]
+    cap = simulate(
+        flat_scene(value / 20), parse_motion("none"), rig, seed=2, radiance=Radiance(1.0)
+    )["vet"]
     rate = value / 20
     t = cap.T[..., None]
     expect_e = rate * (t + rig.leakage * (rig.frame_s - t)) + rig.dark_current_e_s * rig.frame_s
@@ -171,7 +177,7 @@ def test_methods_share_noise_where_they_expose_alike(small_scene):
         rig,
         seed=2,
         methods=["vet", "long", "adaptive-attenuation"],
-        reach_subframes=8,
+        radiance=Radiance(reach_subframes=8),
     )
     vet, long_, adapt = caps["vet"], caps["long"], caps["adaptive-attenuation"]
     dark = vet.T >= rig.frame_s * (1 - 1e-6)

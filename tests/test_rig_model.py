@@ -23,7 +23,7 @@ from stages.optics import (
 from stages.physics import CellMap
 from stages.rig import RigParams
 from stages.scenes import Scene
-from stages.simulate import simulate
+from stages.simulate import Radiance, simulate
 
 STILL = parse_motion("none")
 
@@ -190,8 +190,8 @@ def test_switching_exposes_half_the_switching_time_more():
     rig0 = RigParams(**base)
     rig1 = RigParams(**base, switch_s=0.0025)
     scale = 1e8  # e-/s: crosses the threshold in 30 ms, well inside the frame
-    c0 = simulate(scene, STILL, rig0, seed=1, scale=scale, measure_bins=0)["vet"]
-    c1 = simulate(scene, STILL, rig1, seed=1, scale=scale, measure_bins=0)["vet"]
+    c0 = simulate(scene, STILL, rig0, seed=1, measure_bins=0, radiance=Radiance(scale))["vet"]
+    c1 = simulate(scene, STILL, rig1, seed=1, measure_bins=0, radiance=Radiance(scale))["vet"]
     np.testing.assert_array_equal(c0.T, c1.T)
     g = rig0.gain_dn_per_e
     e0 = float(c0.I.mean()) / g / scale
@@ -243,7 +243,7 @@ def test_trigger_offset_shifts_the_measuring_clock_and_T():
 def test_dropped_subframes_are_marked_missing_and_delay_closure():
     scene = flat_scene(1.0)
     rig = RigParams(sensor_size=(48, 40), drop_rate=0.3)
-    cap = simulate(scene, STILL, rig, seed=5, reach_subframes=3.5)["vet"]
+    cap = simulate(scene, STILL, rig, seed=5, radiance=Radiance(reach_subframes=3.5))["vet"]
     dropped = cap.meta["measure_dropped"]
     k = rig.n_subframes
     assert 20 < len(dropped) < 60
@@ -272,7 +272,7 @@ def test_host_thresholds_the_cell_the_measuring_pixels_see():
     img = np.full((h, w, 1), 1e-3, np.float32)
     img[20:22, 30:32] = 1.0
     rig = rig_profile("realistic", (w, h), lcos_cells=(w, h), relay_blur_px=0.0)
-    cap = simulate(Scene(img, ["Y"], "spot"), STILL, rig, seed=7, scale=2e6)["vet"]
+    cap = simulate(Scene(img, ["Y"], "spot"), STILL, rig, seed=7, radiance=Radiance(2e6))["vet"]
     closed = cap.T < rig.frame_s
     assert closed[20:22, 30:32].all()
     ys, xs = np.nonzero(closed)
@@ -349,9 +349,9 @@ def test_emulated_rig_renders_the_realistic_profile(tmp_path):
         rig.close()
     params = cap.rig
     assert params.switch_s == 0.0025 and not params.ideal_geometry
-    sim = simulate(load_scene_small(size), STILL, params, seed=2, scale=cap.meta["radiance_scale"])[
-        "vet"
-    ]
+    sim = simulate(
+        load_scene_small(size), STILL, params, seed=2, radiance=Radiance(cap.meta["radiance_scale"])
+    )["vet"]
     same = np.mean(cap.measure[0] == sim.measure[0])
     assert same > 0.99
     closed = cap.T < params.frame_s

@@ -89,7 +89,7 @@ def cli(
     from stages.motion import check_in_frame, parse_motion
     from stages.optics import rig_profile
     from stages.scenes import load_scene
-    from stages.simulate import simulate
+    from stages.simulate import Radiance, simulate
 
     check_outputs(
         [Output("-o", output)],
@@ -118,8 +118,7 @@ def cli(
             methods=[method],
             measure_bins=measure_bins,
             progress=progress,
-            scale=scale,
-            reach_subframes=reach,
+            radiance=Radiance(scale, reach),
         )
     caps[method].meta["rig_profile"] = profile
     write_capture(output, caps[method])
